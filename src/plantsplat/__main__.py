@@ -1,0 +1,3 @@
+from plantsplat.cli import entry
+
+entry()

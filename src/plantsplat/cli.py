@@ -1,0 +1,94 @@
+"""The ``plantsplat`` command line: one sub-command per stage, discovered from ``plantsplat.commands``.
+
+Errors a user can cause are printed as one line (``error: ...``) with a non-zero exit code; a
+traceback is shown only with ``--verbose``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+import sys
+from typing import Annotated
+
+from plantsplat import __version__
+from plantsplat.errors import PlantsplatError
+
+DESCRIPTION = (
+    "plantsplat: from a phone video of a potted plant (with a 10 cm ArUco cube) to a clean 3D "
+    "Gaussian Splatting model and metric traits. Global flags: --verbose (debug log, tracebacks), "
+    "--quiet (warnings only), --version."
+)
+
+
+def discover_commands():
+    import plantsplat.commands as pkg
+
+    commands = []
+    for info in pkgutil.iter_modules(pkg.__path__):
+        module = importlib.import_module(f"{pkg.__name__}.{info.name}")
+        cmd = getattr(module, "COMMAND", None)
+        if cmd is not None:
+            commands.append(cmd)
+    commands.sort(key=lambda c: (c.order, c.name))
+    return commands
+
+
+def main(argv: list[str] | None = None) -> int:
+    import tyro
+
+    from plantsplat.log import console, setup_logging
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if "--version" in argv:
+        print(f"plantsplat {__version__}")
+        return 0
+    verbose = "--verbose" in argv or "-v" in argv
+    quiet = "--quiet" in argv or "-q" in argv
+    argv = [a for a in argv if a not in ("--verbose", "-v", "--quiet", "-q")]
+    setup_logging(verbose=verbose, quiet=quiet)
+
+    commands = discover_commands()
+    by_type = {c.config: c for c in commands}
+    try:
+        cfg = tyro.extras.subcommand_cli_from_dict(
+            {c.name: Annotated[c.config, tyro.conf.arg(help=c.help)] for c in commands},
+            args=argv,
+            prog="plantsplat",
+            description=DESCRIPTION,
+            config=(tyro.conf.OmitArgPrefixes,),
+        )
+    except SystemExit as exc:  # --help, or tyro's own usage error (exit 2)
+        return int(exc.code or 0)
+
+    cmd = by_type[type(cfg)]
+    try:
+        code = cmd.run(cfg)
+    except PlantsplatError as exc:
+        if verbose:
+            console.print_exception()
+        console.print(f"[bold red]error:[/] {exc}", markup=True, highlight=False, soft_wrap=True)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        console.print("interrupted: finished outputs are kept; re-run the same command to resume")
+        return 130
+    except Exception as exc:  # an unexpected failure: one line, traceback only with --verbose
+        if verbose:
+            console.print_exception()
+        console.print(
+            f"[bold red]error:[/] {cmd.name} failed: {type(exc).__name__}: {exc} "
+            "(re-run with --verbose for details; finished outputs are kept)",
+            markup=True,
+            highlight=False,
+            soft_wrap=True,
+        )
+        return 1
+    return int(code or 0)
+
+
+def entry() -> None:
+    sys.exit(main())
+
+
+if __name__ == "__main__":
+    entry()
