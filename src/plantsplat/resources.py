@@ -1,0 +1,113 @@
+"""Per-stage time and peak memory measurement (Linux: VmHWM reset through /proc/self/clear_refs).
+
+Example:
+    >>> with StageMeter() as m:
+    ...     _ = bytearray(10_000_000)
+    >>> m.seconds >= 0 and m.peak_rss_mb > 0
+    True
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import resource
+import threading
+import time
+from pathlib import Path
+
+
+def _read_status(key: str) -> float | None:
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(key + ":"):
+                return float(line.split()[1]) / 1024.0  # kB -> MB
+    except OSError:
+        return None
+    return None
+
+
+def _reset_peak() -> bool:
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+class StageMeter:
+    """Measures wall time and the peak resident memory of this process during a ``with`` block.
+
+    Where the kernel lets a process reset its high-water mark, the peak is exact; otherwise a
+    background thread samples the resident size every 50 ms.
+    """
+
+    def __init__(self):
+        self.seconds = 0.0
+        self.peak_rss_mb = 0.0
+        self._sampler: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._sampled = 0.0
+
+    def _sample(self):
+        while not self._stop.wait(0.05):
+            rss = _read_status("VmRSS") or 0.0
+            self._sampled = max(self._sampled, rss)
+
+    def __enter__(self):
+        self._exact = _reset_peak()
+        if not self._exact:
+            self._sampled = _read_status("VmRSS") or 0.0
+            self._sampler = threading.Thread(target=self._sample, daemon=True)
+            self._sampler.start()
+        self._t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc):
+        self.seconds = time.perf_counter() - self._t0
+        if self._exact:
+            self.peak_rss_mb = _read_status("VmHWM") or 0.0
+        else:
+            self._stop.set()
+            if self._sampler is not None:
+                self._sampler.join()
+            self.peak_rss_mb = max(self._sampled, _read_status("VmRSS") or 0.0)
+            if self.peak_rss_mb == 0.0:  # no /proc: fall back to the process-lifetime peak
+                self.peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        return False
+
+
+def machine_info() -> dict:
+    """CPU, cores, memory, load and library versions, for benchmark results and run.json."""
+    info: dict = {
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "cpu_count": os.cpu_count(),
+        "loadavg": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+    }
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                info["cpu_model"] = line.split(":", 1)[1].strip()
+                break
+        mem = Path("/proc/meminfo").read_text().splitlines()[0].split()[1]
+        info["mem_total_gb"] = round(int(mem) / 1024 / 1024, 1)
+    except OSError:
+        pass
+    versions = {}
+    import importlib
+
+    for mod in ["plantsplat", "numpy", "torch", "numba", "cv2", "pycolmap", "open3d"]:
+        try:
+            versions[mod] = getattr(importlib.import_module(mod), "__version__", "?")
+        except Exception:
+            versions[mod] = None
+    info["versions"] = versions
+    try:
+        import torch
+
+        info["cuda"] = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
+    except Exception:
+        info["cuda"] = None
+    return info
