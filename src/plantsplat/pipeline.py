@@ -1,0 +1,184 @@
+"""The end-to-end runner: frames -> segment -> poses -> train -> export -> traits (-> evaluate, report).
+
+Each stage is a plain function over the workspace (see :mod:`plantsplat.workspace`). The runner
+records a stamp per finished stage (its configuration fingerprint and finish time) in
+``WS/.plantsplat/stamps/``; a stage is skipped when its stamp matches the current configuration,
+its outputs exist and no upstream stage finished after it, so an interrupted run resumes where it
+stopped and a changed option re-runs only the stages it affects. Per-stage time and peak memory,
+versions and the full configuration go to ``WS/run.json``.
+
+Example:
+    >>> from plantsplat.pipeline import RunOptions, run_pipeline
+    >>> summary = run_pipeline("video.mp4", "ws/plant_01", RunOptions())  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from plantsplat import __version__
+from plantsplat.errors import PlantsplatError
+from plantsplat.io import read_json, write_json_atomic
+from plantsplat.log import get_logger
+from plantsplat.resources import StageMeter, machine_info
+from plantsplat.workspace import Workspace
+
+log = get_logger(__name__)
+
+
+@dataclass
+class RunOptions:
+    """Options of `plantsplat run` (each stage's defaults otherwise)."""
+
+    num_frames: int = 120
+    """Frames to keep from the video (the paper: 100-150)."""
+    max_size: int = 960
+    """Longest side of the working images, in pixels (the paper trains at 1/4 of 4K)."""
+    segment_backend: Literal["classic", "sam2"] = "classic"
+    """Segmenter: `classic` (offline, no model download) or `sam2` (needs --sam2-checkpoint)."""
+    sam2_checkpoint: Path | None = None
+    """SAM-2 checkpoint file for `--segment-backend sam2`."""
+    matcher: Literal["auto", "sequential", "exhaustive"] = "auto"
+    """COLMAP feature matching (`auto` lets the poses stage choose)."""
+    mode: Literal["object", "full"] = "object"
+    """Training mode: `object` (RGBA, the paper's method) or `full` (whole scene, the Splatfacto baseline)."""
+    backend: Literal["auto", "cpu", "gsplat"] = "auto"
+    """Rasterizer: `auto` uses gsplat on a CUDA GPU, else the CPU backend."""
+    iterations: int | None = None
+    """Training iterations (default: the trainer's recipe for the chosen backend)."""
+    report: bool = True
+    """Write `report.html` at the end (when the report stage is installed)."""
+    ground_truth: Path | None = None
+    """Optional ground truth (a synth `ground_truth.json` or a CSV of measured traits) to evaluate against."""
+    plant_id: str | None = None
+    """Plant id used to pick the row of a ground-truth CSV (default: the workspace folder name)."""
+    seed: int = 0
+    """Random seed for training."""
+
+
+@dataclass
+class Stage:
+    name: str
+    run: Callable[[Workspace, Path | None, RunOptions], dict]
+    outputs: Callable[[Workspace], list[Path]]
+    options: tuple[str, ...] = ()
+    """RunOptions fields that change this stage's result (part of its fingerprint)."""
+    optional: bool = False
+
+
+STAMP_DIR = ".plantsplat/stamps"
+
+
+def _fingerprint(stage: Stage, opts: RunOptions, source: Path | None) -> str:
+    data = {k: str(getattr(opts, k)) for k in stage.options}
+    if stage.name == "frames":
+        data["source"] = str(source.resolve()) if source else None
+    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _stamp_path(ws: Workspace, name: str) -> Path:
+    return ws.root / STAMP_DIR / f"{name}.json"
+
+
+def _read_stamp(ws: Workspace, name: str) -> dict | None:
+    p = _stamp_path(ws, name)
+    if not p.is_file():
+        return None
+    try:
+        return json.loads(p.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+def stage_up_to_date(ws: Workspace, stage: Stage, upstream: list[Stage], opts: RunOptions, source: Path | None) -> bool:
+    stamp = _read_stamp(ws, stage.name)
+    if not stamp or stamp.get("fingerprint") != _fingerprint(stage, opts, source):
+        return False
+    if not all(p.exists() for p in stage.outputs(ws)):
+        return False
+    for up in upstream:
+        ups = _read_stamp(ws, up.name)
+        if ups is not None and ups.get("finished", 0) > stamp.get("finished", 0):
+            return False
+    return True
+
+
+def _summarise(result: dict | None) -> dict:
+    """Keep the JSON-friendly scalars of a stage's result for run.json."""
+    out = {}
+    for k, v in (result or {}).items():
+        if isinstance(v, (int, float, str, bool)) or v is None:
+            out[k] = v
+    return out
+
+
+def run_stages(
+    ws: Workspace,
+    stages: list[Stage],
+    opts: RunOptions,
+    source: Path | None = None,
+    record: dict | None = None,
+) -> dict:
+    """Run ``stages`` in order, skipping the ones that are up to date; returns the run record."""
+    record = record if record is not None else {}
+    record.setdefault("stages", {})
+    done: list[Stage] = []
+    for stage in stages:
+        if stage_up_to_date(ws, stage, done, opts, source):
+            log.info("[%s] up to date, skipped", stage.name)
+            record["stages"].setdefault(stage.name, {})["skipped"] = True
+            done.append(stage)
+            continue
+        log.info("[%s] running", stage.name)
+        with StageMeter() as meter:
+            try:
+                result = stage.run(ws, source, opts)
+            except PlantsplatError as exc:
+                record["stages"][stage.name] = {"failed": str(exc)}
+                record["failed_stage"] = stage.name
+                _write_run_json(ws, record, opts, source)
+                raise
+        entry = {"seconds": round(meter.seconds, 2), "peak_rss_mb": round(meter.peak_rss_mb, 1), "skipped": False}
+        entry.update({"result": _summarise(result)})
+        record["stages"][stage.name] = entry
+        write_json_atomic(
+            _stamp_path(ws, stage.name),
+            {"fingerprint": _fingerprint(stage, opts, source), "finished": time.time()},
+        )
+        _write_run_json(ws, record, opts, source)
+        log.info("[%s] done in %.1f s (peak %.0f MB)", stage.name, meter.seconds, meter.peak_rss_mb)
+        done.append(stage)
+    record.pop("failed_stage", None)
+    return record
+
+
+def _write_run_json(ws: Workspace, record: dict, opts: RunOptions, source: Path | None) -> None:
+    prev = {}
+    if ws.run_json.is_file():
+        try:
+            prev = read_json(ws.run_json)
+        except PlantsplatError:
+            prev = {}
+    stages = dict(prev.get("stages", {}))
+    for name, entry in record.get("stages", {}).items():
+        if entry.get("skipped") and name in stages:
+            continue  # keep the timing of the run that actually did the work
+        stages[name] = entry
+    data = {
+        "plantsplat_version": __version__,
+        "source": str(source) if source else prev.get("source"),
+        "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(opts).items()},
+        "machine": record.get("machine") or machine_info(),
+        "stages": stages,
+        "total_seconds": round(sum(s.get("seconds", 0.0) for s in stages.values() if isinstance(s, dict)), 2),
+        "failed_stage": record.get("failed_stage"),
+        "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+    write_json_atomic(ws.run_json, data)

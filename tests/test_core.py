@@ -1,0 +1,169 @@
+"""The shared core: CLI registry and error handling, atomic I/O, ground truth readers, trait definitions,
+the runner's resume logic."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from plantsplat import traitdefs
+from plantsplat.cli import main
+from plantsplat.errors import PlantsplatError
+from plantsplat.groundtruth import compare_traits, load_ground_truth, read_ground_truth_csv
+from plantsplat.io import atomic_path, read_image, read_json, write_image_atomic, write_json_atomic
+from plantsplat.pipeline import RunOptions, Stage, run_stages
+from plantsplat.workspace import Workspace, prepare_output_dir
+
+
+def test_version_and_help(capsys):
+    assert main(["--version"]) == 0
+    assert "plantsplat" in capsys.readouterr().out
+    assert main(["--help"]) == 0
+    out = capsys.readouterr().out
+    assert "doctor" in out
+
+
+def test_unknown_option_is_usage_error(capsys):
+    assert main(["doctor", "--no-such-option"]) == 2
+
+
+def test_atomic_write_leaves_nothing_on_failure(tmp_path):
+    target = tmp_path / "a.json"
+    write_json_atomic(target, {"x": np.float32(1.5), "arr": np.arange(3)})
+    assert read_json(target) == {"x": 1.5, "arr": [0, 1, 2]}
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("boom")
+    assert read_json(target)["x"] == 1.5  # old content kept
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json"]  # no temp litter
+
+
+def test_corrupt_json_is_one_line_error(tmp_path):
+    p = tmp_path / "bad.json"
+    p.write_text("{not json")
+    with pytest.raises(PlantsplatError, match="bad.json: not valid JSON"):
+        read_json(p)
+
+
+def test_image_roundtrip_rgb_rgba_gray(tmp_path):
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 255, (5, 7, 3), dtype=np.uint8)
+    rgba = rng.integers(0, 255, (5, 7, 4), dtype=np.uint8)
+    gray = rng.integers(0, 255, (5, 7), dtype=np.uint8)
+    for name, img, mode in [("c.png", rgb, "rgb"), ("d.png", rgba, "rgba"), ("e.png", gray, "gray")]:
+        write_image_atomic(tmp_path / name, img)
+        np.testing.assert_array_equal(read_image(tmp_path / name, mode), img)
+    (tmp_path / "broken.png").write_bytes(b"not a png")
+    with pytest.raises(PlantsplatError, match="broken.png"):
+        read_image(tmp_path / "broken.png")
+
+
+def test_prepare_output_dir_refuses_non_empty(tmp_path):
+    (tmp_path / "x").mkdir()
+    (tmp_path / "x" / "keep.txt").write_text("mine")
+    with pytest.raises(PlantsplatError, match="not empty") as info:
+        prepare_output_dir(tmp_path / "x")
+    assert info.value.exit_code == 2
+    prepare_output_dir(tmp_path / "x", force=True)
+    assert (tmp_path / "x" / "keep.txt").read_text() == "mine"  # --force never deletes
+
+
+def test_traitdefs_against_independent_formulas():
+    rng = np.random.default_rng(1)
+    # an anisotropic, rotated cloud: widths along its own axes are known
+    pts = rng.uniform([-10, -3, 0], [10, 3, 8], (5000, 3))
+    corners = np.array([[x, y, z] for x in (-10, 10) for y in (-3, 3) for z in (0, 8)], dtype=float)
+    pts = np.concatenate([pts, corners])  # the hull is then exactly the box
+    a = np.deg2rad(30)
+    R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    pts = pts @ R.T
+    w1, w2 = traitdefs.pca_widths(pts)
+    assert w1 == pytest.approx(20, abs=0.05) and w2 == pytest.approx(6, abs=0.05)
+    assert traitdefs.plant_height(pts) == pytest.approx(8.0)
+    assert traitdefs.plant_height(pts, trim=0.1) == pytest.approx(0.8 * 8, abs=0.2)
+    assert traitdefs.canopy_volume(pts) == pytest.approx(20 * 6 * 8, rel=1e-9)
+    assert traitdefs.canopy_area(pts) == pytest.approx(120, rel=1e-9)
+    with pytest.raises(ValueError):
+        traitdefs.pca_widths(np.zeros((2, 3)))
+
+
+def test_ground_truth_csv_problems(tmp_path):
+    p = tmp_path / "gt.csv"
+    p.write_text(
+        "plant_id,height_cm,width1_cm\n"
+        "a,20,30\n"
+        "b,abc,30\n"
+        ",1,2\n"
+        "a,1,1\n"
+        "c,,25\n"
+    )
+    rows, problems = read_ground_truth_csv(p)
+    assert rows == {"a": {"height_cm": 20.0, "width1_cm": 30.0}, "c": {"width1_cm": 25.0}}
+    assert len(problems) == 3 and any("'b'" in q for q in problems)
+    assert load_ground_truth(p, "c") == {"width1_cm": 25.0}
+    with pytest.raises(PlantsplatError, match="'b'"):
+        load_ground_truth(p, "b")
+    cmp = compare_traits({"height_cm": 22.0}, {"height_cm": 20.0, "width1_cm": 30.0})
+    assert cmp["height_cm"]["pct_error"] == pytest.approx(10.0)
+    assert cmp["width1_cm"]["estimate"] is None
+
+
+def test_ground_truth_json(tmp_path):
+    p = tmp_path / "ground_truth.json"
+    p.write_text(json.dumps({"height_cm": 21.0, "fruit_count": 3, "frames": []}))
+    assert load_ground_truth(p) == {"height_cm": 21.0, "fruit_count": 3.0}
+
+
+def test_runner_skips_up_to_date_and_reruns_downstream(tmp_path):
+    ws = Workspace(tmp_path / "ws")
+    calls: list[str] = []
+
+    def make(name):
+        def run(w, source, opts):
+            calls.append(name)
+            (w.root / f"{name}.out").parent.mkdir(parents=True, exist_ok=True)
+            (w.root / f"{name}.out").write_text(name)
+            return {"n": 1}
+
+        return run
+
+    stages = [
+        Stage("a", make("a"), lambda w: [w.root / "a.out"], options=("num_frames",)),
+        Stage("b", make("b"), lambda w: [w.root / "b.out"], options=("iterations",)),
+    ]
+    opts = RunOptions()
+    run_stages(ws, stages, opts)
+    assert calls == ["a", "b"]
+    run_stages(ws, stages, opts)
+    assert calls == ["a", "b"]  # everything up to date
+    opts.iterations = 10
+    run_stages(ws, stages, opts)
+    assert calls == ["a", "b", "b"]  # only b depends on iterations
+    (ws.root / "a.out").unlink()
+    run_stages(ws, stages, opts)
+    assert calls == ["a", "b", "b", "a", "b"]  # a lost its output; b is downstream of a
+    run = read_json(ws.run_json)
+    assert set(run["stages"]) == {"a", "b"} and run["stages"]["a"]["seconds"] >= 0
+
+
+def test_runner_keeps_finished_stages_when_one_fails(tmp_path):
+    ws = Workspace(tmp_path / "ws")
+
+    def ok(w, s, o):
+        (w.root / "a.out").parent.mkdir(parents=True, exist_ok=True)
+        (w.root / "a.out").write_text("a")
+        return {}
+
+    def bad(w, s, o):
+        raise PlantsplatError("b failed on purpose")
+
+    stages = [Stage("a", ok, lambda w: [w.root / "a.out"]), Stage("b", bad, lambda w: [w.root / "b.out"])]
+    with pytest.raises(PlantsplatError):
+        run_stages(ws, stages, RunOptions())
+    run = read_json(ws.run_json)
+    assert run["failed_stage"] == "b" and "a" in run["stages"]
+    assert (ws.root / "a.out").exists()
