@@ -85,7 +85,9 @@ def test_traitdefs_against_independent_formulas():
     w1, w2 = traitdefs.pca_widths(pts)
     assert w1 == pytest.approx(20, abs=0.05) and w2 == pytest.approx(6, abs=0.05)
     assert traitdefs.plant_height(pts) == pytest.approx(8.0)
-    assert traitdefs.plant_height(pts, trim=0.1) == pytest.approx(0.8 * 8, abs=1.0)
+    tall = np.zeros((1001, 3))
+    tall[:, 2] = np.linspace(0, 100, 1001)
+    assert traitdefs.plant_height(tall, trim=0.1) == pytest.approx(80.0)
     assert traitdefs.canopy_volume(pts) == pytest.approx(20 * 6 * 8, rel=1e-9)
     assert traitdefs.canopy_area(pts) == pytest.approx(120, rel=1e-9)
     with pytest.raises(ValueError):
