@@ -1,0 +1,471 @@
+"""Video (or image folder) -> a set of sharp, spread-out frames in a workspace's ``images/``.
+
+The capture is cut into ``num`` equal stretches (by source frame index); in each stretch the
+sharpest frame (variance of the Laplacian of the luma, measured at the working size) is kept.
+Frames far blurrier than the capture's typical frame and near-duplicates of the previously kept
+frame (the camera stood still) are dropped. Kept frames are rotated upright (the phone's display
+matrix), downscaled so the longer side is at most ``max_size`` and written as
+``images/frame_00000.png``. ``frames.json`` records where each image came from.
+
+Decoding is done with PyAV (FFmpeg's decoders, frame threads on); nothing is decoded twice and only
+the best candidate of the current stretch is kept in memory as a decoded frame.
+
+Example:
+    >>> from plantsplat.frames import extract_frames
+    >>> from plantsplat.workspace import Workspace
+    >>> info = extract_frames("plant01.mp4", Workspace("ws/plant01"), num=120, max_size=960)
+    >>> len(info["frames"]), info["working_size"]
+    (120, [540, 960])
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from plantsplat.errors import PlantsplatError, UsageError
+from plantsplat.io import read_json, write_image_atomic, write_json_atomic
+from plantsplat.log import get_logger, make_progress
+from plantsplat.workspace import IMAGE_PATTERN, Workspace
+
+log = get_logger(__name__)
+
+VIDEO_SUFFIXES = {".mp4", ".mov", ".m4v", ".mkv", ".avi", ".webm", ".mts", ".3gp"}
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
+FRAMES_VERSION = 1
+
+
+# --------------------------------------------------------------------------------------------------
+# small helpers
+# --------------------------------------------------------------------------------------------------
+def working_size(width: int, height: int, max_size: int) -> tuple[int, int]:
+    """Size ``(w, h)`` after downscaling so that the longer side is at most ``max_size`` (never upscaled).
+
+    Example:
+        >>> working_size(1080, 1920, 960)
+        (540, 960)
+    """
+    scale = min(1.0, float(max_size) / max(width, height))
+    return max(1, int(round(width * scale))), max(1, int(round(height * scale)))
+
+
+def sharpness(gray: np.ndarray) -> float:
+    """Variance of the Laplacian of a gray image ``[H, W]`` (higher = sharper).
+
+    Example:
+        >>> import numpy as np
+        >>> sharpness(np.zeros((8, 8), np.uint8))
+        0.0
+    """
+    import cv2
+
+    lap = cv2.Laplacian(gray, cv2.CV_32F, ksize=3)
+    return float(lap.var())
+
+
+def _thumb(gray: np.ndarray) -> np.ndarray:
+    """A 64-pixel-wide float thumbnail used to spot near-duplicates. ``[h, 64]``."""
+    import cv2
+
+    h, w = gray.shape
+    tw = 64
+    th = max(1, int(round(h * tw / w)))
+    return cv2.resize(gray, (tw, th), interpolation=cv2.INTER_AREA).astype(np.float32)
+
+
+def _rotate(img: np.ndarray, degrees_ccw: int) -> np.ndarray:
+    """Rotate an image counter-clockwise by a multiple of 90 degrees (display-matrix convention)."""
+    k = int(round(degrees_ccw / 90.0)) % 4
+    return np.ascontiguousarray(np.rot90(img, k=k)) if k else img
+
+
+def _natural_key(name: str):
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+def _source_fingerprint(path: Path) -> dict[str, Any]:
+    st = path.stat()
+    return {"path": str(path.resolve()), "size_bytes": st.st_size, "mtime": int(st.st_mtime)}
+
+
+def _segments(total: int, num: int) -> np.ndarray:
+    """Stretch index of each source index when ``total`` frames are cut into ``num`` stretches. ``[total]``."""
+    return (np.arange(total, dtype=np.int64) * num) // total
+
+
+def _luma(frame) -> np.ndarray:
+    """The Y plane of a decoded PyAV frame as uint8 ``[H, W]`` (no colour conversion when planar YUV)."""
+    fmt = frame.format
+    name = fmt.name
+    if (name.startswith("yuv") or name.startswith("yuvj") or name.startswith("nv")) and not fmt.is_rgb:
+        plane = frame.planes[0]
+        bits = fmt.components[0].bits
+        if bits <= 8:
+            buf = np.frombuffer(plane, np.uint8).reshape(plane.height, plane.line_size)
+            return buf[:, : plane.width]
+        buf = np.frombuffer(plane, np.uint16).reshape(plane.height, plane.line_size // 2)
+        return (buf[:, : plane.width] >> (bits - 8)).astype(np.uint8)
+    return frame.to_ndarray(format="gray")
+
+
+# --------------------------------------------------------------------------------------------------
+# selection shared by videos and folders
+# --------------------------------------------------------------------------------------------------
+class _Selector:
+    """Keeps the sharpest candidate of each stretch; candidates are pushed in source order."""
+
+    def __init__(self, total: int, num: int, size: tuple[int, int]):
+        self.seg_of = _segments(total, num)
+        self.size = size  # (w, h) working size, after rotation
+        self.best: dict[int, tuple[float, int, Any]] = {}
+        self.done: list[dict[str, Any]] = []
+        self.all_sharpness: list[float] = []
+
+    def push(self, index: int, gray_small: np.ndarray, payload: Any, finish) -> None:
+        s = sharpness(gray_small)
+        self.all_sharpness.append(s)
+        seg = int(self.seg_of[min(index, len(self.seg_of) - 1)])
+        cur = self.best.get(seg)
+        if cur is None or s > cur[0]:
+            self.best[seg] = (s, index, payload)
+        # stretches before this one are complete: finish them (decode/convert only the winner)
+        for k in [k for k in self.best if k < seg]:
+            self._finish(k, finish)
+
+    def _finish(self, seg: int, finish) -> None:
+        s, index, payload = self.best.pop(seg)
+        rgb = finish(payload)
+        self.done.append({"source_index": index, "sharpness": s, "rgb": rgb, "payload_info": payload})
+
+    def close(self, finish) -> list[dict[str, Any]]:
+        for k in sorted(self.best):
+            self._finish(k, finish)
+        return sorted(self.done, key=lambda d: d["source_index"])
+
+
+def _filter(cands: list[dict[str, Any]], blur_ratio: float, dup_threshold: float) -> tuple[list, list]:
+    """Drop blurred frames and near-duplicates. Returns ``(kept, dropped)``; ``dropped`` has reasons."""
+    import cv2
+
+    if not cands:
+        return [], []
+    ref = float(np.median([c["sharpness"] for c in cands]))
+    kept, dropped = [], []
+    prev_thumb = None
+    for c in cands:
+        gray = cv2.cvtColor(c["rgb"], cv2.COLOR_RGB2GRAY)
+        thumb = _thumb(gray)
+        if ref > 0 and c["sharpness"] < blur_ratio * ref:
+            dropped.append({"source_index": c["source_index"], "reason": f"blurred (sharpness {c['sharpness']:.1f} < {blur_ratio} x median {ref:.1f})"})
+            continue
+        if prev_thumb is not None and prev_thumb.shape == thumb.shape:
+            diff = float(np.mean(np.abs(thumb - prev_thumb)))
+            if diff < dup_threshold:
+                dropped.append({"source_index": c["source_index"], "reason": f"near-duplicate of the previous frame (mean difference {diff:.2f})"})
+                continue
+        prev_thumb = thumb
+        kept.append(c)
+    return kept, dropped
+
+
+# --------------------------------------------------------------------------------------------------
+# sources
+# --------------------------------------------------------------------------------------------------
+def _open_video(path: Path):
+    import av
+
+    try:
+        container = av.open(str(path))
+    except (av.error.FFmpegError, OSError, ValueError) as exc:
+        raise PlantsplatError(f"{path}: cannot open the video ({exc}); re-export it as H.264/HEVC mp4 or mov") from exc
+    if not container.streams.video:
+        container.close()
+        raise PlantsplatError(f"{path}: has no video stream; pass a video file or a folder of images")
+    return container
+
+
+def _count_video_frames(path: Path) -> int:
+    """Number of frames in the first video stream (from the header, else by counting packets)."""
+    container = _open_video(path)
+    try:
+        stream = container.streams.video[0]
+        if stream.frames and stream.frames > 0:
+            return int(stream.frames)
+        n = 0
+        for packet in container.demux(stream):
+            if packet.size:
+                n += 1
+        return n
+    except Exception as exc:  # a corrupt container fails while demuxing
+        raise PlantsplatError(f"{path}: the video cannot be read ({type(exc).__name__}: {exc}); re-export it") from exc
+    finally:
+        container.close()
+
+
+def _select_from_video(path: Path, num: int, max_size: int) -> tuple[list, dict]:
+    import av
+    import cv2
+
+    total = _count_video_frames(path)
+    if total <= 0:
+        raise PlantsplatError(f"{path}: the video has no frames; record or export it again")
+    container = _open_video(path)
+    stream = container.streams.video[0]
+    stream.thread_type = "AUTO"
+    src_w, src_h = stream.codec_context.width, stream.codec_context.height
+    meta_rotate = 0
+    try:  # legacy 'rotate' tag: clockwise degrees
+        meta_rotate = -int(stream.metadata.get("rotate", 0))
+    except (TypeError, ValueError):
+        meta_rotate = 0
+    n_take = min(num, total)
+    if total < num:
+        log.warning("%s: only %d frames in the video, fewer than --num %d; using all of them", path, total, num)
+    info: dict[str, Any] = {"rotation": None, "source_size": [src_w, src_h], "total_source_frames": total,
+                            "fps": float(stream.average_rate) if stream.average_rate else None}
+    sel = None
+    decoded = 0
+
+    def finish(frame):
+        rgb = frame.to_ndarray(format="rgb24")
+        rgb = _rotate(rgb, info["rotation"])
+        w, h = sel.size
+        if (rgb.shape[1], rgb.shape[0]) != (w, h):
+            rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
+        return rgb
+
+    try:
+        with make_progress() as bar:
+            task = bar.add_task(f"decoding {path.name}", total=total, info="")
+            for frame in container.decode(stream):
+                if info["rotation"] is None:
+                    rot = frame.rotation or meta_rotate
+                    info["rotation"] = int(round(rot / 90.0)) * 90 % 360
+                    w0, h0 = frame.width, frame.height
+                    if info["rotation"] in (90, 270):
+                        w0, h0 = h0, w0
+                    sel = _Selector(total, n_take, working_size(w0, h0, max_size))
+                gray = _luma(frame)
+                w, h = sel.size
+                if info["rotation"] in (90, 270):
+                    small = cv2.resize(gray, (h, w), interpolation=cv2.INTER_AREA)
+                else:
+                    small = cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA)
+                sel.push(decoded, small, frame, finish)
+                decoded += 1
+                bar.advance(task)
+    except av.error.FFmpegError as exc:
+        if decoded == 0:
+            raise PlantsplatError(f"{path}: no frame could be decoded ({exc}); re-export the video as H.264 mp4") from exc
+        log.warning("%s: decoding stopped after %d of %d frames (%s); using what was decoded", path, decoded, total, exc)
+    finally:
+        container.close()
+    if decoded == 0 or sel is None:
+        raise PlantsplatError(f"{path}: no frame could be decoded; re-export the video as H.264 mp4")
+    if decoded < total:
+        # header over-counted (or the file is truncated): stretches past the end simply stay empty
+        log.info("%s: decoded %d frames (header said %d)", path, decoded, total)
+        info["total_source_frames"] = decoded
+    cands = sel.close(finish)
+    for c in cands:
+        c.pop("payload_info", None)
+    info["working_size"] = list(sel.size)
+    info["median_sharpness_all"] = float(np.median(sel.all_sharpness))
+    return cands, info
+
+
+def _list_images(folder: Path) -> list[Path]:
+    files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")]
+    return sorted(files, key=lambda p: _natural_key(p.name))
+
+
+def _select_from_folder(folder: Path, num: int, max_size: int) -> tuple[list, dict]:
+    import cv2
+
+    files = _list_images(folder)
+    if not files:
+        raise PlantsplatError(f"{folder}: no images found (looked for {', '.join(sorted(IMAGE_SUFFIXES))}); pass a video or a folder of photos")
+    total = len(files)
+    n_take = min(num, total)
+    if total < num:
+        log.info("%s: %d images, fewer than --num %d; using all of them", folder, total, num)
+    sel = None
+    src_size = None
+    unreadable = []
+
+    def finish(rgb):
+        return rgb
+
+    with make_progress() as bar:
+        task = bar.add_task(f"reading {folder.name}", total=total, info="")
+        for i, p in enumerate(files):
+            bar.advance(task)
+            bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)  # applies EXIF orientation
+            if bgr is None:
+                unreadable.append(p.name)
+                continue
+            h, w = bgr.shape[:2]
+            if src_size is None:
+                src_size = (w, h)
+                sel = _Selector(total, n_take, working_size(w, h, max_size))
+            elif (w, h) != src_size:
+                raise PlantsplatError(
+                    f"{p}: size {w}x{h} differs from the first image's {src_size[0]}x{src_size[1]}; "
+                    "use images from one camera at one resolution and orientation"
+                )
+            rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+            sw, sh = sel.size
+            if (w, h) != (sw, sh):
+                rgb = cv2.resize(rgb, (sw, sh), interpolation=cv2.INTER_AREA)
+            sel.push(i, cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), rgb, finish)
+    if unreadable:
+        log.warning("%s: skipped %d unreadable image(s): %s", folder, len(unreadable), ", ".join(unreadable[:10]) + (" ..." if len(unreadable) > 10 else ""))
+    if sel is None:
+        raise PlantsplatError(f"{folder}: none of the {total} images could be read; check the files")
+    cands = sel.close(finish)
+    for c in cands:
+        c["source_name"] = files[c["source_index"]].name
+        c.pop("payload_info", None)
+    info = {"rotation": 0, "source_size": list(src_size), "total_source_frames": total,
+            "working_size": list(sel.size), "unreadable": unreadable,
+            "median_sharpness_all": float(np.median(sel.all_sharpness))}
+    return cands, info
+
+
+# --------------------------------------------------------------------------------------------------
+# public API
+# --------------------------------------------------------------------------------------------------
+def frames_fingerprint(ws: Workspace) -> str | None:
+    """A short hash of ``frames.json`` (used by later stages to notice re-extracted frames)."""
+    if not ws.frames_json.is_file():
+        return None
+    return hashlib.sha1(ws.frames_json.read_bytes()).hexdigest()[:16]
+
+
+def extract_frames(
+    input: str | os.PathLike,
+    ws: Workspace | str | os.PathLike,
+    num: int = 120,
+    max_size: int = 960,
+    force: bool = False,
+    min_frames: int = 8,
+    blur_ratio: float = 0.35,
+    dup_threshold: float = 1.0,
+) -> dict[str, Any]:
+    """Choose ``num`` sharp frames spread over a video or image folder and write them to ``ws``.
+
+    Args:
+        input: a video file (mp4/mov/..., H.264 or HEVC; rotation metadata honoured) or a folder of images.
+        ws: the workspace (folder) to write ``images/`` and ``frames.json`` into.
+        num: how many frames to aim for (one per equal stretch of the capture).
+        max_size: longest side of the written images in pixels (never upscaled).
+        force: re-extract even when ``frames.json`` says this input was already extracted with these
+            settings; stale ``images/frame_*.png`` beyond the new count are removed.
+        min_frames: fewer usable frames than this is an error.
+        blur_ratio: a chosen frame whose sharpness is below ``blur_ratio`` x the median of the chosen
+            frames is dropped as blurred.
+        dup_threshold: a chosen frame whose 64-px gray thumbnail differs from the previous kept one by
+            less than this mean absolute difference (0-255 scale) is dropped as a near-duplicate.
+
+    Returns:
+        The content of ``frames.json``.
+
+    Example:
+        >>> info = extract_frames("plant.mov", "ws/plant", num=100)
+        >>> info["frames"][0]["name"], info["kind"]
+        ('frame_00000.png', 'video')
+    """
+    ws = ws if isinstance(ws, Workspace) else Workspace(ws)
+    src = Path(input)
+    if num < 1:
+        raise UsageError(f"--num must be at least 1 (got {num})")
+    if max_size < 16:
+        raise UsageError(f"--max-size must be at least 16 pixels (got {max_size})")
+    if not src.exists():
+        raise PlantsplatError(f"{src}: no such file or folder; pass a video file or a folder of images")
+    kind = "folder" if src.is_dir() else "video"
+    if kind == "video" and src.suffix.lower() in IMAGE_SUFFIXES:
+        raise PlantsplatError(f"{src}: is a single image; pass a video or a folder of images")
+    settings = {"num": num, "max_size": max_size, "min_frames": min_frames, "blur_ratio": blur_ratio,
+                "dup_threshold": dup_threshold, "version": FRAMES_VERSION}
+    fingerprint = _source_fingerprint(src) if kind == "video" else {"path": str(src.resolve())}
+
+    # resume / protection of existing work
+    existing_names = ws.image_names()
+    if ws.frames_json.is_file() and not force:
+        try:
+            old = read_json(ws.frames_json)
+        except PlantsplatError:
+            old = None
+        if (
+            old is not None
+            and old.get("source") == fingerprint
+            and old.get("settings") == settings
+            and all((ws.images_dir / f["name"]).is_file() for f in old.get("frames", []))
+        ):
+            log.info("%s: frames already extracted from %s (%d images); pass --force to redo", ws.root, src, len(old["frames"]))
+            return old
+    if existing_names and not force:
+        raise PlantsplatError(
+            f"{ws.images_dir}: already holds {len(existing_names)} images from another extraction; "
+            "pass --force to replace them or choose another --out",
+            exit_code=2,
+        )
+
+    log.info("frames: choosing up to %d frames from %s", num, src)
+    if kind == "video":
+        cands, info = _select_from_video(src, num, max_size)
+    else:
+        cands, info = _select_from_folder(src, num, max_size)
+    kept, dropped = _filter(cands, blur_ratio, dup_threshold)
+    if dropped:
+        log.warning("frames: dropped %d frame(s): %s", len(dropped),
+                    "; ".join(f"#{d['source_index']}: {d['reason']}" for d in dropped[:5]) + (" ..." if len(dropped) > 5 else ""))
+    if len(kept) < min_frames:
+        raise PlantsplatError(
+            f"{src}: only {len(kept)} usable frames (of {info['total_source_frames']}; at least {min_frames} needed); "
+            "record a longer, steadier video or add images"
+        )
+
+    ws.images_dir.mkdir(parents=True, exist_ok=True)
+    records = []
+    with make_progress() as bar:
+        task = bar.add_task("writing images", total=len(kept), info="")
+        for i, c in enumerate(kept):
+            name = IMAGE_PATTERN.format(i)
+            write_image_atomic(ws.images_dir / name, c["rgb"])
+            rec = {"name": name, "source_index": int(c["source_index"]), "sharpness": round(float(c["sharpness"]), 3)}
+            if "source_name" in c:
+                rec["source_name"] = c["source_name"]
+            if info.get("fps"):
+                rec["time_s"] = round(c["source_index"] / info["fps"], 4)
+            records.append(rec)
+            bar.advance(task)
+    # remove stale frames of an earlier (forced-over) extraction so images/ matches frames.json
+    new_names = {r["name"] for r in records}
+    for name in existing_names:
+        if name not in new_names and re.fullmatch(r"frame_\d{5}\.png", name):
+            (ws.images_dir / name).unlink(missing_ok=True)
+
+    out = {
+        "source": fingerprint,
+        "kind": kind,
+        "rotation": info["rotation"],
+        "source_size": info["source_size"],
+        "working_size": info["working_size"],
+        "total_source_frames": info["total_source_frames"],
+        "fps": info.get("fps"),
+        "settings": settings,
+        "median_sharpness_all": round(info["median_sharpness_all"], 3),
+        "dropped": dropped,
+        "unreadable": info.get("unreadable", []),
+        "frames": records,
+    }
+    write_json_atomic(ws.frames_json, out)
+    log.info("frames: wrote %d images (%dx%d) to %s", len(records), *info["working_size"], ws.images_dir)
+    return out
