@@ -182,3 +182,131 @@ def _write_run_json(ws: Workspace, record: dict, opts: RunOptions, source: Path 
         "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
     write_json_atomic(ws.run_json, data)
+
+
+# --- the stages of `plantsplat run` ------------------------------------------------------------
+
+
+def _stage_frames(ws: Workspace, source: Path | None, opts: RunOptions) -> dict:
+    from plantsplat.frames import extract_frames
+
+    if source is None:
+        raise PlantsplatError(f"{ws.root}: no input video or image folder given")
+    return extract_frames(source, ws, num=opts.num_frames, max_size=opts.max_size)
+
+
+def _stage_segment(ws: Workspace, source: Path | None, opts: RunOptions) -> dict:
+    from plantsplat.segment import segment_workspace
+
+    return segment_workspace(ws, backend=opts.segment_backend, sam2_checkpoint=opts.sam2_checkpoint)
+
+
+def _stage_poses(ws: Workspace, source: Path | None, opts: RunOptions) -> dict:
+    from plantsplat.poses import PosesOptions, estimate_poses
+
+    popts = PosesOptions()
+    if opts.matcher != "auto":
+        popts.matcher = opts.matcher
+    return estimate_poses(ws, popts)
+
+
+def _stage_train(ws: Workspace, source: Path | None, opts: RunOptions) -> dict:
+    from plantsplat.train import TrainOptions, train_workspace
+
+    topts = TrainOptions(mode=opts.mode, backend=opts.backend, seed=opts.seed)
+    if opts.iterations is not None:
+        topts.iterations = opts.iterations
+    return train_workspace(ws, topts)
+
+
+def _stage_export(ws: Workspace, source: Path | None, opts: RunOptions) -> dict:
+    from plantsplat.train import export_workspace
+
+    return export_workspace(ws)
+
+
+def _stage_traits(ws: Workspace, source: Path | None, opts: RunOptions) -> dict:
+    from plantsplat.traits import traits_workspace
+
+    return traits_workspace(ws)
+
+
+def _stage_evaluate(ws: Workspace, source: Path | None, opts: RunOptions) -> dict:
+    return evaluate_workspace(ws, opts.ground_truth, opts.plant_id or ws.root.name)
+
+
+def _stage_report(ws: Workspace, source: Path | None, opts: RunOptions) -> dict:
+    from plantsplat.report import write_report
+
+    path = write_report(ws)
+    return {"report": str(path)}
+
+
+def evaluation_json(ws: Workspace) -> Path:
+    return ws.root / "evaluation.json"
+
+
+def evaluate_workspace(ws: Workspace, ground_truth: Path | None, plant_id: str | None = None) -> dict:
+    """Compare ``WS/traits.json`` with ground truth; writes ``WS/evaluation.json``."""
+    from plantsplat.groundtruth import compare_traits, load_ground_truth
+
+    if ground_truth is None:
+        raise PlantsplatError("evaluate needs --ground-truth (a synth ground_truth.json or a CSV of measured traits)")
+    traits = read_json(ws.require(ws.traits_json, "traits"))
+    truth = load_ground_truth(ground_truth, plant_id)
+    comparison = compare_traits(traits, truth)
+    result = {"ground_truth": str(ground_truth), "plant_id": plant_id, "traits": comparison}
+    write_json_atomic(evaluation_json(ws), result)
+    return result
+
+
+def pipeline_stages(opts: RunOptions) -> list[Stage]:
+    """The stages `plantsplat run` executes for these options, in order."""
+    stages = [
+        Stage("frames", _stage_frames, lambda w: [w.frames_json, w.images_dir], ("num_frames", "max_size")),
+        Stage("segment", _stage_segment, lambda w: [w.masks_dir, w.segment_json], ("segment_backend", "sam2_checkpoint")),
+        Stage("poses", _stage_poses, lambda w: [w.sparse_dir, w.transforms_json, w.poses_json], ("matcher",)),
+        Stage("train", _stage_train, lambda w: [w.train_dir, w.metrics_json], ("mode", "backend", "iterations", "seed")),
+        Stage("export", _stage_export, lambda w: [w.splat_ply, w.points_ply]),
+        Stage("traits", _stage_traits, lambda w: [w.traits_json, w.traits_csv]),
+    ]
+    if opts.ground_truth is not None:
+        stages.append(Stage("evaluate", _stage_evaluate, lambda w: [evaluation_json(w)], ("ground_truth", "plant_id")))
+    if opts.report:
+        try:
+            import plantsplat.report  # noqa: F401
+        except ImportError:
+            pass
+        else:
+            stages.append(Stage("report", _stage_report, lambda w: [w.report_html], optional=True))
+    return stages
+
+
+def run_pipeline(source: str | Path | None, ws_root: str | Path, opts: RunOptions) -> dict:
+    """Run (or resume) the whole pipeline for one plant; returns the summary (traits, metrics, paths)."""
+    ws = Workspace(ws_root)
+    ws.root.mkdir(parents=True, exist_ok=True)
+    src = Path(source) if source is not None else None
+    if src is not None and not src.exists():
+        raise PlantsplatError(f"{src}: input not found (a video file or a folder of images)")
+    record: dict = {"machine": machine_info()}
+    stages = pipeline_stages(opts)
+    run_stages(ws, stages, opts, src, record)
+    return summarize_workspace(ws)
+
+
+def summarize_workspace(ws: Workspace) -> dict:
+    """Traits, image metrics, evaluation and output paths of a finished workspace."""
+    out: dict = {"workspace": str(ws.root)}
+    for key, path in [("traits", ws.traits_json), ("metrics", ws.metrics_json), ("evaluation", evaluation_json(ws)),
+                      ("run", ws.run_json)]:
+        if path.is_file():
+            out[key] = read_json(path)
+    out["outputs"] = {
+        name: str(p)
+        for name, p in [("splat", ws.splat_ply), ("points", ws.points_ply), ("traits", ws.traits_json),
+                        ("traits_csv", ws.traits_csv), ("traits_figure", ws.traits_png), ("transforms", ws.transforms_json),
+                        ("colmap", ws.sparse_dir), ("report", ws.report_html)]
+        if p.exists()
+    }
+    return out

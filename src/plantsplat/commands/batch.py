@@ -1,0 +1,56 @@
+"""`plantsplat batch`: many plants from a manifest, locally in parallel or on a Ray cluster."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import tyro
+
+from plantsplat.batch import BatchOptions
+from plantsplat.commands import Command
+
+
+@dataclass
+class BatchConfig:
+    """Run every plant listed in MANIFEST.csv (columns plant_id, input) into OUT/plants/<plant_id>/.
+
+    One plant's failure does not stop the others; re-running resumes. Writes OUT/traits.csv and,
+    with --ground-truth, the paper's accuracy table (R2, RMSE, MAPE, MAE, Acc) and scatter plots.
+    Exit code 0 only when every plant succeeded.
+    Example: plantsplat batch plants.csv --out experiment1 --workers 2 --ground-truth measured.csv
+    """
+
+    manifest: tyro.conf.Positional[Path]
+    """CSV with columns plant_id and input (a video or image folder; relative to the manifest)."""
+    out: Path
+    """Folder for the per-plant workspaces and the batch tables."""
+    batch: BatchOptions = field(default_factory=BatchOptions)
+
+
+def run(cfg: BatchConfig) -> int:
+    from plantsplat.batch import run_batch
+    from plantsplat.log import console
+
+    summary = run_batch(cfg.manifest, cfg.out, cfg.batch)
+    for p in summary["plants"]:
+        status = p["status"]
+        colour = "green" if status == "ok" else "red"
+        console.print(f"[{colour}]{status:8s}[/] {p['plant_id']}" + (f": {p['error']}" if p.get("error") else ""))
+    console.print(f"{summary['n_ok']} of {len(summary['plants'])} plants succeeded; traits: {cfg.out / 'traits.csv'}")
+    acc = summary.get("accuracy")
+    if acc:
+        from rich.table import Table
+
+        t = Table(title="Accuracy against ground truth")
+        for col in ("trait", "n", "R2", "RMSE", "MAPE %", "MAE", "Acc %"):
+            t.add_column(col, justify="right")
+        for trait, m in acc["table"].items():
+            t.add_row(trait, str(m.get("n")), *[
+                "—" if m.get(k) is None else f"{m[k]:.3f}" for k in ("r2", "rmse", "mape", "mae", "acc")
+            ])
+        console.print(t)
+    return 0 if summary["n_failed"] == 0 else 1
+
+
+COMMAND = Command(name="batch", config=BatchConfig, run=run, help="Many plants from a manifest (local or Ray).", order=80)
