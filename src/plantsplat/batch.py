@@ -122,6 +122,12 @@ def run_one_plant(plant_id: str, source: str, ws: str, run_opts: dict, threads: 
     setup_logging(quiet=True)
     opts = RunOptions(**run_opts)
     opts.plant_id = plant_id
+    if opts.ground_truth is not None:
+        from plantsplat.groundtruth import read_ground_truth_csv
+
+        rows, _ = read_ground_truth_csv(opts.ground_truth)
+        if plant_id not in rows:
+            opts.ground_truth = None  # no usable truth for this plant: nothing to evaluate
     t0 = time.perf_counter()
     try:
         summary = run_pipeline(Path(source), Path(ws), opts)
@@ -194,7 +200,12 @@ def run_batch(manifest: str | Path, out: str | Path, opts: BatchOptions) -> dict
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rows = read_manifest(manifest)
+    if opts.ground_truth is not None:
+        from plantsplat.groundtruth import read_ground_truth_csv
+
+        read_ground_truth_csv(opts.ground_truth)  # an unreadable file stops the batch before any work
     run_opts = dataclasses.asdict(opts.run)
+    run_opts["ground_truth"] = opts.ground_truth
     jobs = [
         (r.plant_id, str(r.input), str(out / "plants" / r.plant_id), run_opts)
         for r in rows

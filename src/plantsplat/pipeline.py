@@ -23,6 +23,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import tyro
+
 from plantsplat import __version__
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_json, write_json_atomic
@@ -55,12 +57,13 @@ class RunOptions:
     """Training iterations (default: the trainer's recipe for the chosen backend)."""
     report: bool = True
     """Write `report.html` at the end (when the report stage is installed)."""
-    ground_truth: Path | None = None
-    """Optional ground truth (a synth `ground_truth.json` or a CSV of measured traits) to evaluate against."""
-    plant_id: str | None = None
-    """Plant id used to pick the row of a ground-truth CSV (default: the workspace folder name)."""
     seed: int = 0
     """Random seed for training."""
+    # set by the `run`, `demo` and `batch` commands, not options of their own:
+    ground_truth: tyro.conf.Suppress[Path | None] = None
+    """Ground truth (a synth `ground_truth.json` or a CSV of measured traits) to evaluate against."""
+    plant_id: tyro.conf.Suppress[str | None] = None
+    """Plant id that picks the row of a ground-truth CSV (default: the workspace folder name)."""
 
 
 @dataclass

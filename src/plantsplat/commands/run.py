@@ -23,6 +23,10 @@ class RunConfig:
     """Video (mp4/mov) or folder of images of one plant."""
     out: Path
     """Workspace folder for this plant (created if missing; re-running resumes)."""
+    ground_truth: Path | None = None
+    """Ground truth to evaluate against: a synth ground_truth.json or a CSV (plant_id + trait columns)."""
+    plant_id: str | None = None
+    """Row of a ground-truth CSV (default: the workspace folder name)."""
     options: RunOptions = field(default_factory=RunOptions)
 
 
@@ -30,6 +34,8 @@ def run(cfg: RunConfig) -> int:
     from plantsplat.pipeline import run_pipeline
     from plantsplat.summary import print_summary
 
+    cfg.options.ground_truth = cfg.ground_truth
+    cfg.options.plant_id = cfg.plant_id
     summary = run_pipeline(cfg.input, cfg.out, cfg.options)
     evaluation = (summary.get("evaluation") or {}).get("traits")
     print_summary(summary, evaluation)
