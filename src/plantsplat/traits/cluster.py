@@ -1,0 +1,200 @@
+"""DBSCAN clustering of an exported Gaussian point cloud and selection of the plant's clusters.
+
+The paper segments the exported cloud with DBSCAN (Ester et al. 1996). Here the clustering is
+Open3D's ``cluster_dbscan``; its neighbourhood radius ``eps`` comes from the data:
+
+* calibrated clouds (cm): ``eps = clip(eps_factor * median k-NN distance, eps_min_cm, eps_max_cm)``,
+  so a dense cloud gets a tight radius and a sparse one still connects, within sane metric bounds;
+* uncalibrated clouds (arbitrary units): ``eps = eps_factor * median k-NN distance``.
+
+Large clouds are clustered on a random subset of at most ``max_points`` points; every other point
+takes the label of its nearest clustered point when it lies within ``eps`` of it (noise otherwise).
+
+Example:
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> a = rng.normal(0, 0.3, (500, 3)); b = rng.normal(0, 0.3, (300, 3)) + [10, 0, 0]
+    >>> labels, eps = dbscan(np.concatenate([a, b]), calibrated=True)
+    >>> sorted(np.bincount(labels[labels >= 0]).tolist())
+    [300, 500]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from plantsplat.log import get_logger
+
+log = get_logger(__name__)
+
+
+def knn_spacing(points: np.ndarray, k: int = 8, sample: int = 5000, seed: int = 0) -> float:
+    """Median distance from a point to its ``k``-th nearest neighbour (on a sample of the points).
+
+    Example:
+        >>> g = np.stack(np.meshgrid(*[np.arange(10.0)] * 3), -1).reshape(-1, 3)
+        >>> knn_spacing(g, k=1)
+        1.0
+    """
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, dtype=np.float64)  # [N, 3]
+    if len(pts) <= k:
+        raise ValueError(f"need more than {k} points to measure the point spacing, got {len(pts)}")
+    tree = cKDTree(pts)
+    rng = np.random.default_rng(seed)
+    idx = rng.choice(len(pts), size=min(sample, len(pts)), replace=False)
+    d, _ = tree.query(pts[idx], k=k + 1)  # [S, k+1], column 0 is the point itself
+    return float(np.median(d[:, k]))
+
+
+def choose_eps(
+    points: np.ndarray,
+    calibrated: bool,
+    min_points: int = 10,
+    eps_factor: float = 3.0,
+    eps_min_cm: float = 0.4,
+    eps_max_cm: float = 2.0,
+) -> float:
+    """The DBSCAN radius for this cloud (see the module docstring)."""
+    spacing = knn_spacing(points, k=min(min_points, len(points) - 1))
+    eps = eps_factor * spacing
+    if calibrated:
+        eps = float(np.clip(eps, eps_min_cm, eps_max_cm))
+    return float(eps)
+
+
+def dbscan(
+    points: np.ndarray,
+    *,
+    calibrated: bool,
+    eps: float | None = None,
+    min_points: int = 10,
+    max_points: int = 250_000,
+    seed: int = 0,
+) -> tuple[np.ndarray, float]:
+    """Cluster ``points [N, 3]`` with Open3D's DBSCAN. Returns ``(labels [N] int, eps)``; -1 is noise.
+
+    Labels are renumbered by decreasing cluster size (0 = largest).
+    """
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, dtype=np.float64)  # [N, 3]
+    if eps is None:
+        eps = choose_eps(pts, calibrated, min_points)
+    rng = np.random.default_rng(seed)
+    if len(pts) > max_points:
+        sub = np.sort(rng.choice(len(pts), size=max_points, replace=False))
+    else:
+        sub = np.arange(len(pts))
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[sub]))
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        lab_sub = np.asarray(pc.cluster_dbscan(eps=float(eps), min_points=int(min_points)), dtype=np.int64)
+    labels = np.full(len(pts), -1, dtype=np.int64)
+    labels[sub] = lab_sub
+    if len(sub) < len(pts):
+        rest = np.setdiff1d(np.arange(len(pts)), sub)
+        d, j = cKDTree(pts[sub]).query(pts[rest], k=1, distance_upper_bound=eps)
+        ok = np.isfinite(d)
+        labels[rest[ok]] = lab_sub[j[ok]]
+    # renumber by size, largest first
+    valid = labels >= 0
+    if valid.any():
+        counts = np.bincount(labels[valid])
+        order = np.argsort(-counts, kind="stable")
+        remap = np.empty_like(order)
+        remap[order] = np.arange(len(order))
+        labels[valid] = remap[labels[valid]]
+    return labels, float(eps)
+
+
+@dataclass
+class PlantSelection:
+    """Which clusters make up the plant."""
+
+    mask: np.ndarray
+    """[N] bool: points of the plant."""
+    clusters: list[int]
+    """Cluster labels merged into the plant (the main one first)."""
+    main_fraction: float
+    """Fraction of the plant's points in the main cluster."""
+    excluded: list[dict]
+    """Clusters left out (label, points, reason)."""
+    reasons: list[str]
+    """Quality warnings (fragmented plant, large excluded clusters)."""
+
+
+def select_plant(
+    points: np.ndarray,
+    labels: np.ndarray,
+    *,
+    exclude: set[int] = frozenset(),
+    merge_distance: float,
+    min_cluster_fraction: float = 0.002,
+    min_cluster_points: int = 10,
+    max_pieces: int = 12,
+) -> PlantSelection | None:
+    """The plant: the largest cluster that is not excluded (the cube), plus every cluster whose
+    nearest point lies within ``merge_distance`` of the plant so far (repeated until nothing joins:
+    separated leaves, fruit on thin peduncles). Tiny clusters (fewer than ``min_cluster_fraction`` of
+    the main cluster's points) are floaters and never join. Returns None when no cluster is left.
+
+    Example:
+        >>> rng = np.random.default_rng(1)
+        >>> body = rng.normal(0, 2, (2000, 3)); leaf = rng.normal(0, 0.3, (200, 3)) + [9, 0, 0]
+        >>> far = rng.normal(0, 0.3, (200, 3)) + [60, 0, 0]
+        >>> pts = np.concatenate([body, leaf, far])
+        >>> lab = np.r_[np.zeros(2000, int), np.ones(200, int), np.full(200, 2)]
+        >>> sel = select_plant(pts, lab, merge_distance=5.0)
+        >>> sel.clusters, int(sel.mask.sum())
+        ([0, 1], 2200)
+    """
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, dtype=np.float64)
+    labels = np.asarray(labels)
+    ids = [int(i) for i in np.unique(labels) if i >= 0 and int(i) not in exclude]
+    if not ids:
+        return None
+    sizes = {i: int((labels == i).sum()) for i in ids}
+    main = max(ids, key=lambda i: sizes[i])
+    min_size = max(min_cluster_points, int(np.ceil(min_cluster_fraction * sizes[main])))
+    chosen = [main]
+    tree = cKDTree(pts[labels == main])
+    pending = [i for i in ids if i != main]
+    excluded: list[dict] = []
+    for i in list(pending):
+        if sizes[i] < min_size:
+            excluded.append({"label": i, "points": sizes[i], "reason": "floater (too small)"})
+            pending.remove(i)
+    changed = True
+    while changed and pending:
+        changed = False
+        for i in list(pending):
+            d, _ = tree.query(pts[labels == i], k=1, distance_upper_bound=merge_distance)
+            if np.isfinite(d).any():
+                chosen.append(i)
+                pending.remove(i)
+                changed = True
+        if changed:
+            tree = cKDTree(pts[np.isin(labels, chosen)])
+    for i in pending:
+        excluded.append({"label": i, "points": sizes[i], "reason": "far from the plant"})
+    mask = np.isin(labels, chosen)
+    total = int(mask.sum())
+    main_fraction = sizes[main] / total
+    reasons: list[str] = []
+    if len(chosen) > max_pieces:
+        reasons.append(f"plant assembled from {len(chosen)} clusters (more than {max_pieces}): reconstruction is fragmented")
+    if main_fraction < 0.25:
+        reasons.append(f"largest plant cluster holds only {main_fraction:.0%} of the plant's points: reconstruction is fragmented")
+    big_far = [e for e in excluded if e["reason"] == "far from the plant" and e["points"] > 0.05 * total]
+    if big_far:
+        reasons.append(
+            f"{len(big_far)} large cluster(s) left out as too far from the plant "
+            f"({', '.join(str(e['points']) for e in big_far)} points): check the plant is not split"
+        )
+    return PlantSelection(mask=mask, clusters=chosen, main_fraction=float(main_fraction), excluded=excluded, reasons=reasons)

@@ -1,0 +1,465 @@
+"""Find the calibration cube among the clusters and measure it by fitting its faces' planes.
+
+Following the paper (section 2.4): each DBSCAN cluster's oriented bounding box (Open3D's minimal
+OBB) is tested for a cube's shape: three near-equal robust extents, points lying on the box's
+surface (a reconstructed cube is a hollow shell) and at least three faces well covered. The best
+candidate is then measured by fitting its faces' planes with RANSAC (Open3D ``segment_plane``, each
+plane refined by least squares on the points assigned to it), grouping the planes into three
+orthogonal directions and averaging the distances between parallel (opposite) faces: that is the
+cube edge ``l_hat``; the metric scale is ``s = 10 cm / l_hat``.
+
+The cube also gives the ground plane and "up": it stands on the ground, so one of its three axes is
+vertical and its bottom face lies on the ground. Which axis and sign is decided by, in order:
+the camera centres when known (all cameras are above the ground; a vertical plane through the cube
+has cameras on both sides), else the unseen bottom face (a face resting on the ground is not
+reconstructed, so it has far fewer points than its opposite face). Without either cue the choice is
+flagged as ambiguous.
+
+Example:
+    >>> import numpy as np
+    >>> from plantsplat.traits.cube_fit import fit_cube_planes
+    >>> rng = np.random.default_rng(0)
+    >>> pts = cube_surface_points(10.0, 6000, rng, faces=("+x", "-x", "+y", "-y", "top"))
+    >>> fit = fit_cube_planes(pts, size_hint=10.0)
+    >>> round(fit.edge, 3)
+    10.0
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from plantsplat.cube import FACE_NAMES, CubeSpec
+from plantsplat.log import get_logger
+
+log = get_logger(__name__)
+
+
+def cube_surface_points(
+    size: float,
+    n: int,
+    rng: np.random.Generator,
+    faces: tuple[str, ...] = FACE_NAMES,
+    noise: float = 0.0,
+) -> np.ndarray:
+    """Uniform samples on the given faces of a cube in the cube frame (bottom face centred on the
+    origin, +z up), with optional isotropic Gaussian noise of std ``noise``. ``[n, 3]``.
+
+    Used by the tests and benchmarks as a known cube; it is not part of the measurement.
+    """
+    spec = CubeSpec(size=size, marker_size=size)
+    per = np.full(len(faces), n // len(faces))
+    per[: n - per.sum()] += 1
+    out = []
+    for face, m in zip(faces, per):
+        c, _, r, u = spec.face_frame(face)
+        ab = rng.uniform(-size / 2, size / 2, (m, 2))
+        out.append(c + ab[:, :1] * r + ab[:, 1:] * u)
+    pts = np.concatenate(out)
+    if noise > 0:
+        pts = pts + rng.normal(0, noise, pts.shape)
+    return pts
+
+
+@dataclass
+class CubeCandidate:
+    label: int
+    points: int
+    extents: list[float]
+    """Robust extents (1 %-99 % quantiles) along the OBB axes, sorted decreasing."""
+    equality: float
+    """Smallest over largest extent (1 for a cube)."""
+    surface_fraction: float
+    """Fraction of points within 8 % of the extent from the box surface."""
+    faces_covered: int
+    """Faces whose 4x4 grid of cells is at least 60 % occupied."""
+    score: float
+    accepted: bool
+    why: str = ""
+
+
+@dataclass
+class CubeFit:
+    """The cube measured by plane fitting (all lengths in the input cloud's units)."""
+
+    edge: float
+    """Mean distance between opposite faces (the measured edge length ``l_hat``)."""
+    edge_per_axis: list[float | None]
+    """Distance between the two faces of each axis (None where only one face was found)."""
+    axes: np.ndarray
+    """[3, 3] orthonormal cube axes (rows), from the fitted face normals."""
+    centre: np.ndarray
+    """[3] cube centre."""
+    faces: list[dict]
+    """Fitted planes: axis, normal [3], offset d (n.x + d = 0), inliers, rms residual."""
+    plane_rms: float
+    """RMS point-to-plane residual over all assigned points."""
+    up: np.ndarray | None = None
+    """[3] unit vector, "up" (normal of the top face)."""
+    up_axis: int | None = None
+    up_method: str = ""
+    up_confident: bool = False
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def bottom_centre(self) -> np.ndarray:
+        """Centre of the bottom face (the origin of the calibrated frame). Needs ``up``."""
+        assert self.up is not None
+        return self.centre - self.up * self.edge / 2
+
+    def to_dict(self) -> dict:
+        return {
+            "edge": self.edge,
+            "edge_per_axis": self.edge_per_axis,
+            "axes": self.axes.tolist(),
+            "centre": self.centre.tolist(),
+            "up": None if self.up is None else self.up.tolist(),
+            "up_method": self.up_method,
+            "up_confident": self.up_confident,
+            "faces_fitted": len(self.faces),
+            "plane_rms": self.plane_rms,
+            "faces": [
+                {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in f.items()} for f in self.faces
+            ],
+        }
+
+
+def _robust_obb(points: np.ndarray):
+    """Minimal OBB axes ``[3, 3]`` (rows) and the 1 %..99 % extents of the points along them."""
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    try:
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            obb = pc.get_minimal_oriented_bounding_box(robust=True)
+        R = np.asarray(obb.R).T  # rows = axes
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
+            raise RuntimeError("degenerate box")
+    except RuntimeError:
+        # degenerate (flat/collinear) clusters: fall back to PCA axes
+        c = points - points.mean(0)
+        R = np.linalg.svd(c, full_matrices=False)[2]
+    proj = (points - points.mean(0)) @ R.T  # [N, 3]
+    lo, hi = np.quantile(proj, [0.01, 0.99], axis=0)
+    return R, lo, hi, proj
+
+
+def evaluate_cube_candidate(
+    points: np.ndarray, label: int, cube_size: float | None, min_points: int = 200
+) -> CubeCandidate:
+    """Score one cluster as the cube. ``cube_size`` (cloud units) when known, else None."""
+    n = len(points)
+    if n < min_points:
+        return CubeCandidate(label, n, [], 0.0, 0.0, 0, 0.0, False, "too few points")
+    R, lo, hi, proj = _robust_obb(points)
+    ext = hi - lo
+    order = np.argsort(-ext)
+    ext_sorted = ext[order]
+    equality = float(ext_sorted[-1] / max(ext_sorted[0], 1e-12))
+    size = float(np.mean(ext))
+    tol = 0.08 * size
+    dist_to_surface = np.min(np.concatenate([np.abs(proj - lo), np.abs(hi - proj)], axis=1), axis=1)
+    surface = float(np.mean(dist_to_surface < tol))
+    covered = 0
+    for ax in range(3):
+        others = [a for a in range(3) if a != ax]
+        for side in (lo[ax], hi[ax]):
+            on = np.abs(proj[:, ax] - side) < tol
+            if on.sum() < 16:
+                continue
+            uv = (proj[on][:, others] - lo[others]) / np.maximum(ext[others], 1e-12)
+            cells = np.clip((uv * 4).astype(int), 0, 3)
+            occ = len(np.unique(cells[:, 0] * 4 + cells[:, 1])) / 16
+            covered += occ >= 0.6
+    why = []
+    if equality < 0.75:
+        why.append(f"extents {np.round(ext_sorted, 3).tolist()} not equal")
+    if surface < 0.6:
+        why.append(f"only {surface:.0%} of points on the box surface")
+    if covered < 3:
+        why.append(f"only {covered} faces covered")
+    if cube_size is not None and not (0.75 * cube_size <= size <= 1.35 * cube_size):
+        why.append(f"size {size:.3g} is not the cube's {cube_size:.3g}")
+    score = equality * surface * covered / 6
+    return CubeCandidate(
+        label, n, ext_sorted.tolist(), equality, surface, int(covered), float(score), not why, "; ".join(why)
+    )
+
+
+def find_cube_cluster(
+    points: np.ndarray, labels: np.ndarray, cube_size: float | None, max_clusters: int = 30
+) -> tuple[int | None, list[CubeCandidate]]:
+    """The label of the cluster that is the cube (None if none qualifies) and every candidate tried."""
+    ids, counts = np.unique(labels[labels >= 0], return_counts=True)
+    ids = ids[np.argsort(-counts)][:max_clusters]
+    cands = [evaluate_cube_candidate(points[labels == i], int(i), cube_size) for i in ids]
+    ok = [c for c in cands if c.accepted]
+    if not ok:
+        return None, cands
+    best = max(ok, key=lambda c: c.score)
+    return best.label, cands
+
+
+def _lsq_plane(pts: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Least-squares plane through ``pts [M, 3]``: ``(normal [3], d, rms)`` with ``n.x + d = 0``."""
+    c = pts.mean(0)
+    _, s, vt = np.linalg.svd(pts - c, full_matrices=False)
+    nrm = vt[2]
+    rms = float(s[2] / np.sqrt(len(pts)))
+    return nrm, float(-nrm @ c), rms
+
+
+def fit_cube_planes(
+    points: np.ndarray,
+    size_hint: float | None = None,
+    threshold: float | None = None,
+    max_planes: int = 8,
+    iterations: int = 2000,
+    seed: int = 0,
+) -> CubeFit | None:
+    """Fit the cube's face planes and measure its edge. ``points [N, 3]`` are the cube's points.
+
+    ``threshold`` (RANSAC inlier distance) defaults to 2 % of the edge (``size_hint`` or the robust
+    OBB size). Returns None when fewer than one pair of opposite faces could be fitted.
+    """
+    import open3d as o3d
+
+    pts = np.asarray(points, dtype=np.float64)
+    if len(pts) < 60:
+        return None
+    R, lo, hi, _ = _robust_obb(pts)
+    size = float(size_hint) if size_hint else float(np.mean(hi - lo))
+    thr = float(threshold) if threshold else 0.02 * size
+    o3d.utility.random.seed(seed)
+    remaining = np.arange(len(pts))
+    planes: list[tuple[np.ndarray, float]] = []
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        for _ in range(max_planes):
+            if len(remaining) < max(30, 0.03 * len(pts)):
+                break
+            pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[remaining]))
+            model, inl = pc.segment_plane(thr, 3, iterations)
+            inl = np.asarray(inl, dtype=np.int64)
+            if len(inl) < max(30, 0.03 * len(pts)):
+                break
+            nrm, d, _ = _lsq_plane(pts[remaining[inl]])
+            planes.append((nrm, d))
+            remaining = np.delete(remaining, inl)
+    if len(planes) < 2:
+        return None
+    # assign every point to its nearest plane (within 2.5 thr) and refine each plane twice
+    for _ in range(2):
+        dist = np.stack([np.abs(pts @ n + d) for n, d in planes], axis=1)  # [N, P]
+        near = dist.argmin(1)
+        ok = dist.min(1) < 2.5 * thr
+        new = []
+        for k, (n0, d0) in enumerate(planes):
+            sel = pts[ok & (near == k)]
+            if len(sel) < 10:
+                new.append((n0, d0))
+                continue
+            n, d, _ = _lsq_plane(sel)
+            if n @ n0 < 0:
+                n, d = -n, -d
+            new.append((n, d))
+        planes = new
+    dist = np.stack([np.abs(pts @ n + d) for n, d in planes], axis=1)
+    near = dist.argmin(1)
+    ok = dist.min(1) < 2.5 * thr
+    counts = np.array([int((ok & (near == k)).sum()) for k in range(len(planes))])
+    # group planes into (up to) three orthogonal directions, most-supported planes first
+    cos_par = np.cos(np.radians(12))
+    groups: list[list[int]] = []
+    for k in np.argsort(-counts):
+        n = planes[k][0]
+        for g in groups:
+            if abs(n @ planes[g[0]][0]) > cos_par:
+                g.append(int(k))
+                break
+        else:
+            if all(abs(n @ planes[g[0]][0]) < np.sin(np.radians(12)) for g in groups) and len(groups) < 3:
+                groups.append([int(k)])
+    # within a direction, merge duplicate fits of the same face (offsets closer than 20 % of the
+    # edge) and keep the two best-supported sides; each side starts from the LSQ plane of its points
+    side_axis: list[int] = []
+    side_planes: list[tuple[np.ndarray, float]] = []
+    for gi, g in enumerate(groups):
+        ref = planes[g[0]][0]
+        members = []
+        for k in g:
+            n, d = planes[k]
+            members.append((k, -d if n @ ref > 0 else d))  # position along ref
+        members.sort(key=lambda m: -m[1])
+        sides: list[list] = []
+        for m in members:
+            if sides and abs(m[1] - sides[-1][0][1]) < 0.2 * size:
+                sides[-1].append(m)
+            else:
+                sides.append([m])
+        sides = sorted(sides, key=lambda sd: -sum(counts[k] for k, _ in sd))[:2]
+        for sd in sides:
+            idx = np.isin(near, [k for k, _ in sd]) & ok
+            if idx.sum() < 10:
+                continue
+            n, d, _ = _lsq_plane(pts[idx])
+            side_axis.append(gi)
+            side_planes.append((n, d))
+    # final fits: every point goes to its nearest face; points near a cube edge (close to two
+    # faces) are left out, so that one face's points never pull on another's plane
+    for _ in range(2):
+        dist = np.stack([np.abs(pts @ n + d) for n, d in side_planes], axis=1)  # [N, S]
+        near = dist.argmin(1)
+        second = np.sort(dist, axis=1)[:, 1] if dist.shape[1] > 1 else np.full(len(pts), np.inf)
+        clean = (dist.min(1) < 2.5 * thr) & (second > 2.5 * thr)
+        fits = []
+        for k, (n0, d0) in enumerate(side_planes):
+            idx = clean & (near == k)
+            if idx.sum() < 10:
+                fits.append((n0, d0, np.nan, 0, pts[near == k].mean(0) if (near == k).any() else None))
+                continue
+            n, d, rms = _lsq_plane(pts[idx])
+            if n @ n0 < 0:
+                n, d = -n, -d
+            fits.append((n, d, rms, int(idx.sum()), pts[idx].mean(0)))
+        side_planes = [(f[0], f[1]) for f in fits]
+    ok = dist.min(1) < 2.5 * thr
+    best_count = max(f[3] for f in fits)
+    centre0 = pts.mean(0)
+    faces: list[dict] = []
+    edge_per_axis: list[float | None] = []
+    axis_normals = []
+    axis_centres: list[float | None] = []
+    for gi in range(len(groups)):
+        ks = [k for k in range(len(fits)) if side_axis[k] == gi and fits[k][3] >= max(30, 0.1 * best_count)]
+        if not ks:
+            ks_all = [k for k in range(len(fits)) if side_axis[k] == gi]
+            nav = fits[ks_all[0]][0] if ks_all else planes[groups[gi][0]][0]
+        else:
+            ref = fits[ks[0]][0]
+            nav = np.mean([fits[k][0] * np.sign(fits[k][0] @ ref) for k in ks], axis=0)
+        nav = nav / np.linalg.norm(nav)
+        axis_normals.append(nav)
+        offs = []
+        for k in ks:
+            n, d, rms, cnt, c = fits[k]
+            # signed position of the face along the mean normal, taken at its points' centroid
+            pos = float(nav @ c)
+            outward = nav if pos > nav @ centre0 else -nav
+            faces.append({"axis": gi, "normal": outward, "offset": pos, "inliers": cnt, "rms": float(rms)})
+            offs.append(pos)
+        if len(offs) == 2 and abs(offs[0] - offs[1]) > 0.5 * size:
+            edge_per_axis.append(float(abs(offs[0] - offs[1])))
+            axis_centres.append(float(np.mean(offs)))
+        else:
+            edge_per_axis.append(None)
+            axis_centres.append(None)
+    measured = [e for e in edge_per_axis if e is not None]
+    if not measured:
+        return None
+    edge = float(np.mean(measured))
+    # orthonormal axes closest to the fitted normals (SVD), completing a missing third axis
+    A = np.array(axis_normals)
+    if len(A) == 1:
+        return None
+    if len(A) == 2:
+        A = np.vstack([A, np.cross(A[0], A[1])])
+        edge_per_axis.append(None)
+        axis_centres.append(None)
+    u, _, vt = np.linalg.svd(A)
+    axes = u @ vt
+    # centre: mid-plane where both faces are known, else one face moved by edge/2 inward, else mean
+    centre_coords = []
+    for ax in range(3):
+        if axis_centres[ax] is not None:
+            centre_coords.append(axis_centres[ax])
+            continue
+        one = [f for f in faces if f["axis"] == ax]
+        if one:
+            f = one[0]
+            sign = 1.0 if f["normal"] @ axes[ax] > 0 else -1.0
+            centre_coords.append(f["offset"] - sign * edge / 2)
+        else:
+            centre_coords.append(float(axes[ax] @ centre0))
+    centre = np.linalg.solve(axes, np.array(centre_coords))
+    tot = ok.sum()
+    plane_rms = float(np.sqrt(np.mean(dist.min(1)[ok] ** 2))) if tot else float("nan")
+    fit = CubeFit(
+        edge=edge, edge_per_axis=edge_per_axis, axes=axes, centre=centre, faces=faces, plane_rms=plane_rms
+    )
+    fit.extra["face_points"] = _face_counts(pts, fit, thr)
+    return fit
+
+
+def _face_counts(pts: np.ndarray, fit: CubeFit, thr: float) -> dict[str, int]:
+    """Points within 2.5 thr of each of the six ideal faces, keyed ``'{axis}{+|-}'``."""
+    rel = (pts - fit.centre) @ fit.axes.T  # [N, 3]
+    h = fit.edge / 2
+    out = {}
+    for ax in range(3):
+        inside = np.all(np.abs(np.delete(rel, ax, axis=1)) < h * 1.05, axis=1)
+        for sgn, name in ((1, "+"), (-1, "-")):
+            out[f"{ax}{name}"] = int((inside & (np.abs(rel[:, ax] - sgn * h) < 2.5 * thr)).sum())
+    return out
+
+
+def decide_up(
+    fit: CubeFit,
+    camera_centres: np.ndarray | None = None,
+    reference_up: np.ndarray | None = None,
+) -> CubeFit:
+    """Choose which cube axis (and sign) is "up" and store it in ``fit`` (see the module docstring).
+
+    ``reference_up`` (e.g. +z of an ArUco-calibrated frame) picks the cube axis closest to it.
+    """
+    cands = [(ax, s) for ax in range(3) for s in (1.0, -1.0)]
+    if reference_up is not None:
+        r = np.asarray(reference_up, float) / np.linalg.norm(reference_up)
+        ax, s = max(cands, key=lambda c: c[1] * (fit.axes[c[0]] @ r))
+        fit.up_axis, fit.up, fit.up_method, fit.up_confident = ax, s * fit.axes[ax], "reference frame", True
+        return fit
+    if camera_centres is not None and len(camera_centres) >= 3:
+        cams = np.asarray(camera_centres, float)
+        scores = []
+        for ax, s in cands:
+            u = s * fit.axes[ax]
+            h = (cams - (fit.centre - u * fit.edge / 2)) @ u  # heights above the candidate ground
+            scores.append((float(np.mean(h > 0)), float(np.median(h)), ax, s))
+        scores.sort(reverse=True)
+        best = scores[0]
+        fit.up_axis, fit.up = best[2], best[3] * fit.axes[best[2]]
+        fit.up_method = f"cameras ({best[0]:.0%} above the ground)"
+        fit.up_confident = best[0] >= 0.9 and scores[1][0] < 0.9
+        return fit
+    fc = fit.extra.get("face_points", {})
+    best = None
+    for ax in range(3):
+        a, b = fc.get(f"{ax}+", 0), fc.get(f"{ax}-", 0)
+        hi, lo = max(a, b), min(a, b)
+        ratio = lo / max(hi, 1)
+        s = 1.0 if a > b else -1.0  # the well-seen face is the top, the unseen one the bottom
+        if best is None or ratio < best[0]:
+            best = (ratio, ax, s)
+    ratio, ax, s = best
+    fit.up_axis, fit.up = ax, s * fit.axes[ax]
+    fit.up_method = f"unseen bottom face (its point count is {ratio:.0%} of the top's)"
+    fit.up_confident = ratio < 0.3
+    return fit
+
+
+def cube_frame_transform(fit: CubeFit, cube_size: float) -> tuple[np.ndarray, float]:
+    """The similarity that maps the cloud into the calibrated frame: ``(T [4, 4], scale)`` with
+    ``x_cm = scale * R (x - bottom_centre)``; z along ``up``, x along the first other cube axis."""
+    assert fit.up is not None and fit.up_axis is not None
+    z = fit.up
+    xa = [a for a in range(3) if a != fit.up_axis][0]
+    x = fit.axes[xa] - (fit.axes[xa] @ z) * z
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])  # rows
+    s = cube_size / fit.edge
+    T = np.eye(4)
+    T[:3, :3] = s * R
+    T[:3, 3] = -s * R @ fit.bottom_centre
+    return T, float(s)

@@ -1,0 +1,305 @@
+"""Traits: cube found and measured by planes, clustering with floaters and a separated leaf, trait
+values against the shared definitions, bad input, the CLI stage and the accuracy statistics."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from plantsplat import traitdefs
+from plantsplat.traits import accuracy_table, measure_traits
+from plantsplat.traits.cube_fit import cube_surface_points, decide_up, fit_cube_planes
+from plantsplat.traits.measure import TraitSettings, fruit_mask
+from plantsplat.traits.stats import format_table, mae, mape, r2, rmse, scatter_plots
+
+CUBE_FACES = ("+x", "-x", "+y", "-y", "top")  # the bottom face stands on the ground and is never seen
+
+
+def _disc(rng, centre, normal, radius, n, ratio=0.6):
+    """Points on an elliptic leaf blade (a flat ellipse) with a small random waviness."""
+    normal = np.asarray(normal, float) / np.linalg.norm(normal)
+    e1 = np.cross(normal, [0.0, 0.0, 1.0] if abs(normal[2]) < 0.9 else [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    r = radius * np.sqrt(rng.random(n))
+    a = rng.uniform(0, 2 * np.pi, n)
+    u, v = r * np.cos(a), ratio * r * np.sin(a)
+    w = 0.15 * np.sin(u) * np.cos(v)
+    return centre + u[:, None] * e1 + v[:, None] * e2 + w[:, None] * normal
+
+
+def _line(rng, a, b, n, jitter=0.05):
+    t = rng.random(n)[:, None]
+    return a + t * (np.asarray(b) - a) + rng.normal(0, jitter, (n, 3))
+
+
+def make_plant_scene(seed=0, floaters=True, separated_leaf=True, noise=0.0):
+    """A plant-like cloud (petioles, leaf blades, red fruit) on a 12 cm pot (pot not in the cloud),
+    a noisy cube beside it, floaters, and one leaf whose petiole is missing.
+
+    Returns (points [N, 3], colors [N, 3] uint8, plant_mask [N] bool) in the calibrated frame (cm,
+    z up, cube bottom centred on the origin).
+    """
+    rng = np.random.default_rng(seed)
+    crown = np.array([24.0, 3.0, 12.0])
+    parts, cols, is_plant = [], [], []
+
+    def add(p, c, plant=True):
+        parts.append(p)
+        cols.append(np.broadcast_to(np.asarray(c, np.uint8), p.shape).copy())
+        is_plant.append(np.full(len(p), plant))
+
+    n_leaves = 7
+    for i in range(n_leaves):
+        az = 2 * np.pi * i / n_leaves + rng.uniform(-0.2, 0.2)
+        el = np.radians(rng.uniform(35, 70))
+        L = rng.uniform(9, 15) * (1.3 if i % 3 == 0 else 1.0)
+        d = np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
+        blade_c = crown + d * L
+        pet = _line(rng, crown, blade_c, 500)
+        if separated_leaf and i == 3:
+            # the middle of this petiole was not reconstructed: the leaf is a separate cluster
+            t = (pet - crown) @ d / L
+            pet = pet[(t < 0.6) | (t > 0.8)]
+        add(pet, (70, 110, 40))
+        add(_disc(rng, blade_c, [-d[0] * 0.3, -d[1] * 0.3, 1.0], rng.uniform(3.5, 5), 2500), (40, 95, 25))
+    # fruit: red spheres on short peduncles, hanging from the crown
+    for j in range(3):
+        az = 2 * np.pi * j / 3 + rng.uniform(-0.5, 0.5)
+        c = crown + [7 * np.cos(az), 7 * np.sin(az), -3.0 - j]
+        add(_line(rng, crown, c, 150), (80, 120, 40))
+        s = rng.normal(size=(500, 3))
+        add(c + 1.1 * s / np.linalg.norm(s, axis=1, keepdims=True), (190, 15, 20))
+    cube = cube_surface_points(10.0, 6000, rng, faces=CUBE_FACES)
+    add(cube, (230, 230, 230), plant=False)
+    if floaters:
+        # isolated specks and one small blob away from everything
+        lo, hi = np.array([-20.0, -30, -2]), np.array([60.0, 40, 45])
+        specks = rng.uniform(lo, hi, (400, 3))
+        plant_pts = np.concatenate([p for p, m in zip(parts, is_plant) if m[0]])
+        from scipy.spatial import cKDTree
+
+        d, _ = cKDTree(np.concatenate([plant_pts, cube])).query(specks)
+        add(specks[d > 3.0][:60], (128, 128, 128), plant=False)
+        add(rng.normal([60.0, -25, 20], 0.3, (25, 3)), (200, 30, 30), plant=False)
+    pts = np.concatenate(parts)
+    if noise:
+        pts = pts + rng.normal(0, noise, pts.shape)
+    return pts, np.concatenate(cols), np.concatenate(is_plant)
+
+
+def _rel(a, b):
+    return abs(a - b) / abs(b)
+
+
+# --- cube -------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("noise_mm", [0.0, 1.0, 2.0])
+def test_cube_edge_by_planes_within_1pct_on_noisy_clouds(noise_mm):
+    rng = np.random.default_rng(int(noise_mm * 10))
+    for trial in range(2):
+        pts = cube_surface_points(10.0, 6000, rng, faces=CUBE_FACES, noise=noise_mm / 10)
+        R = Rotation.random(random_state=trial + 7).as_matrix()
+        scale = rng.uniform(0.05, 3.0)
+        t = rng.uniform(-5, 5, 3)
+        cloud = (pts @ R.T) * scale + t
+        fit = fit_cube_planes(cloud)
+        assert fit is not None
+        assert _rel(fit.edge / scale, 10.0) < 0.01, (noise_mm, fit.edge / scale)
+        decide_up(fit)
+        assert fit.up_confident
+        assert fit.up @ R[:, 2] > 0.999  # the unseen bottom face gives "up"
+        # the bottom face's centre is the cube frame's origin
+        np.testing.assert_allclose(fit.bottom_centre, t, atol=0.01 * 10.0 * scale)  # 1 % of the edge
+
+
+def test_up_from_cameras_when_all_faces_are_seen():
+    rng = np.random.default_rng(3)
+    pts = cube_surface_points(10.0, 6000, rng)  # all six faces: coverage cannot tell up
+    ang = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    cams = np.stack([40 * np.cos(ang), 40 * np.sin(ang), rng.uniform(5, 45, 24)], 1)
+    R = Rotation.random(random_state=11).as_matrix()
+    fit = decide_up(fit_cube_planes(pts @ R.T), camera_centres=cams @ R.T)
+    assert fit.up_confident and fit.up @ R[:, 2] > 0.999
+
+
+# --- clustering and traits ------------------------------------------------------------------------
+
+
+def test_traits_equal_definitions_with_floaters_and_separated_leaf():
+    pts, cols, plant = make_plant_scene(seed=1)
+    truth = traitdefs.geometric_traits(pts[plant])
+    res = measure_traits(pts, cols, calibrated=True)
+    assert res.quality == "ok", res.reasons
+    for k, v in truth.items():
+        assert _rel(res.traits[k], v) < 0.01, (k, res.traits[k], v)
+    assert len(res.plant_points) == int(plant.sum())  # the separated leaf joined, floaters and cube did not
+    assert res.traits["fruit_count"] == 3
+    assert abs(res.scale["aruco_vs_planes_pct"]) < 0.5
+    assert res.clusters["cube_label"] is not None
+    # robust values are trimmed, hence no larger
+    for k in ("height_cm", "width1_cm", "width2_cm"):
+        assert res.robust[k] <= res.traits[k] + 1e-9
+
+
+def test_uncalibrated_cloud_scaled_and_levelled_by_the_cube():
+    pts, cols, plant = make_plant_scene(seed=2, noise=0.05)
+    truth = traitdefs.geometric_traits(pts[plant])
+    R = Rotation.random(random_state=5).as_matrix()
+    s = 0.0731  # arbitrary SfM units
+    cloud = (pts @ R.T) * s + [3.0, -1.0, 2.0]
+    res = measure_traits(cloud, cols, calibrated=False)
+    assert res.quality == "ok", res.reasons
+    assert res.scale["source"] == "cube_planes"
+    assert _rel(res.scale["scale"], 1 / s) < 0.01
+    for k in ("height_cm", "width1_cm", "width2_cm", "canopy_area_cm2"):
+        assert _rel(res.traits[k], truth[k]) < 0.01, (k, res.traits[k], truth[k])
+    assert _rel(res.traits["canopy_volume_cm3"], truth["canopy_volume_cm3"]) < 0.03
+
+
+def test_scale_disagreement_is_reported_and_flagged():
+    pts, cols, _ = make_plant_scene(seed=4, floaters=False)
+    res = measure_traits(pts * 1.06, cols, calibrated=True)  # a 6 % wrong ArUco scale
+    assert res.quality == "warning"
+    assert res.scale["aruco_vs_planes_pct"] == pytest.approx(6.0, abs=0.5)
+    assert any("ArUco" in r for r in res.reasons)
+
+
+def test_fruit_colour_model():
+    s = TraitSettings()
+    cols = np.array([[190, 15, 20], [160, 8, 30], [129, 59, 26], [40, 95, 25], [240, 240, 230], [30, 3, 3]], np.uint8)
+    assert fruit_mask(cols, s).tolist() == [True, True, False, False, False, False]
+
+
+# --- bad input -------------------------------------------------------------------------------------
+
+
+def test_empty_cloud_fails_clearly():
+    res = measure_traits(np.zeros((0, 3)), None, calibrated=True)
+    assert res.quality == "failed" and all(res.traits[k] is None for k in traitdefs.TRAIT_KEYS)
+    res = measure_traits(np.full((500, 3), np.nan), None, calibrated=True)
+    assert res.quality == "failed"
+
+
+def test_uncalibrated_without_cube_gives_no_numbers():
+    pts, cols, plant = make_plant_scene(seed=5, floaters=False)
+    res = measure_traits(pts[plant] * 0.1, cols[plant], calibrated=False)
+    assert res.quality == "failed"
+    assert res.traits["height_cm"] is None
+    assert "no cube" in res.reasons[0]
+
+
+def test_plant_in_many_pieces_is_flagged():
+    rng = np.random.default_rng(6)
+    cube = cube_surface_points(10.0, 5000, rng, faces=CUBE_FACES)
+    blobs = [rng.normal([25 + 12 * (i % 4), 12 * (i // 4), 15], 0.8, (600, 3)) for i in range(16)]
+    res = measure_traits(np.concatenate([cube, *blobs]), None, calibrated=True)
+    assert res.quality == "warning"
+    assert any("fragmented" in r or "left out" in r for r in res.reasons), res.reasons
+
+
+def test_no_cube_in_calibrated_cloud_is_flagged_not_fatal():
+    pts, cols, plant = make_plant_scene(seed=7, floaters=False)
+    res = measure_traits(pts[plant], cols[plant], calibrated=True)
+    assert res.quality == "warning"
+    assert any("no cube" in r for r in res.reasons)
+    assert _rel(res.traits["height_cm"], traitdefs.plant_height(pts[plant])) < 0.01
+
+
+# --- accuracy statistics ---------------------------------------------------------------------------
+
+
+def test_statistics_match_the_paper_definitions():
+    rng = np.random.default_rng(0)
+    y = rng.uniform(10, 40, 15)
+    yh = y * rng.normal(1, 0.05, 15) + rng.normal(0, 0.5, 15)
+    # independent loop implementations of the paper's equations
+    n = len(y)
+    ybar = sum(y) / n
+    ss_res = sum((a - b) ** 2 for a, b in zip(y, yh))
+    ss_tot = sum((a - ybar) ** 2 for a in y)
+    assert r2(y, yh) == pytest.approx(1 - ss_res / ss_tot)
+    assert rmse(y, yh) == pytest.approx((ss_res / n) ** 0.5)
+    assert mape(y, yh) == pytest.approx(100 / n * sum(abs((a - b) / a) for a, b in zip(y, yh)))
+    assert mae(y, yh) == pytest.approx(sum(abs(a - b) for a, b in zip(y, yh)) / n)
+    t = accuracy_table({"height_cm": yh}, {"height_cm": y}, ["height_cm"])["height_cm"]
+    assert t["acc"] == pytest.approx(100 - t["mape"])
+    assert r2([1, 2, 3], [3, 2, 1]) == pytest.approx(-3.0)  # worse than the mean: negative
+    with pytest.raises(ValueError):
+        mape([0.0, 1.0], [0.1, 1.0])
+    assert "| Height (cm) |" in format_table({"height_cm": t})
+
+
+def test_scatter_plot_png(tmp_path):
+    est = {f"p{i}": {"height_cm": 10.0 + i + 0.3 * (-1) ** i, "width1_cm": 20.0 + i} for i in range(6)}
+    gt = {f"p{i}": {"height_cm": 10.0 + i, "width1_cm": 20.5 + i} for i in range(6)}
+    out = tmp_path / "scatter.png"
+    scatter_plots(est, gt, ["height_cm", "width1_cm"], out)
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    table = accuracy_table(est, gt, ["width1_cm"])
+    assert table["width1_cm"]["mae"] == pytest.approx(0.5)
+
+
+# --- the CLI stage ----------------------------------------------------------------------------------
+
+
+def _write_points_ply(path, pts, cols, opacity):
+    from plyfile import PlyData, PlyElement
+
+    arr = np.empty(len(pts), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"),
+                                    ("blue", "u1"), ("opacity", "f4"), ("scale_0", "f4"), ("scale_1", "f4"),
+                                    ("scale_2", "f4")])
+    arr["x"], arr["y"], arr["z"] = pts.T
+    arr["red"], arr["green"], arr["blue"] = cols.T
+    arr["opacity"] = opacity
+    for i in range(3):
+        arr[f"scale_{i}"] = 0.1
+    path.parent.mkdir(parents=True, exist_ok=True)
+    PlyData([PlyElement.describe(arr, "vertex")]).write(str(path))
+
+
+def test_traits_command_writes_json_csv_png(tmp_path, capsys):
+    from plantsplat.cli import main
+
+    pts, cols, plant = make_plant_scene(seed=8)
+    # low-opacity Gaussians far away must be filtered out by the opacity threshold
+    junk = np.random.default_rng(0).uniform(100, 200, (300, 3))
+    ws = tmp_path / "plant_01"
+    _write_points_ply(ws / "export" / "points.ply", np.concatenate([pts, junk]),
+                      np.concatenate([cols, np.full((300, 3), 9, np.uint8)]),
+                      np.r_[np.full(len(pts), 0.9), np.full(300, 0.02)])
+    (ws / "poses.json").write_text(json.dumps({"scale_source": "aruco"}))
+    assert main(["traits", str(ws)]) == 0
+    out = json.loads((ws / "traits.json").read_text())
+    for k in traitdefs.TRAIT_KEYS:
+        assert k in out
+    assert out["quality"] == "ok" and out["scale_source"] == "aruco"
+    assert _rel(out["height_cm"], traitdefs.plant_height(pts[plant])) < 0.01
+    lines = (ws / "traits.csv").read_text().strip().splitlines()
+    assert len(lines) == 2 and lines[0].startswith("plant,height_cm")
+    assert (ws / "traits.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_traits_command_bad_input_one_line_error(tmp_path, capsys):
+    from plantsplat.cli import main
+
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    assert main(["traits", str(ws)]) == 1  # no export yet
+    err = capsys.readouterr().err
+    assert "points.ply" in err and "plantsplat export" in err and "Traceback" not in err
+    # an unscaled cloud without a cube: failed traits.json, non-zero exit, no numbers
+    pts, cols, plant = make_plant_scene(seed=9, floaters=False)
+    _write_points_ply(ws / "export" / "points.ply", pts[plant] * 0.2, cols[plant], np.ones(int(plant.sum())))
+    (ws / "poses.json").write_text(json.dumps({"scale_source": "none"}))
+    assert main(["traits", str(ws)]) == 1
+    out = json.loads((ws / "traits.json").read_text())
+    assert out["quality"] == "failed" and out["height_cm"] is None
+    assert "no cube" in capsys.readouterr().err
+    (ws / "export" / "points.ply").write_bytes(b"ply\ngarbage")
+    assert main(["traits", str(ws)]) == 1
+    assert "not a readable PLY" in capsys.readouterr().err
