@@ -1,0 +1,267 @@
+"""Metric calibration of an SfM model with the ArUco cube: scale, gravity and origin.
+
+The cube frame (see :mod:`plantsplat.cube`) is the world frame of every later stage: origin at the
+centre of the cube's bottom face (on the ground plane), +z up, centimetres. Given a COLMAP model
+(any scale, any orientation) and the markers detected in its frames, :func:`calibrate` estimates
+the similarity ``cube_from_model`` (``x_cube = s R x_model + t``):
+
+1. every marker corner seen in two or more registered frames is triangulated from the SfM
+   cameras (LO-RANSAC, pixel reprojection error, so a bad detection in one frame is ignored);
+2. a robust similarity (LO-RANSAC, then Umeyama on the inliers) maps the triangulated corners onto
+   the corners of :class:`~plantsplat.cube.CubeSpec`;
+3. the cube's pose in the model is refined by minimising the reprojection error of all detected
+   marker corners in all frames (robust Huber loss, SfM cameras fixed); marker detections whose
+   reprojection error stays above ``max_residual_px`` are rejected and the fit repeated.
+
+The per-detection reprojection errors are also the model's consistency check: a split or wrong
+model cannot make the cube reproject where its markers are detected in every frame.
+
+Example:
+    >>> det = detect_all(Path("ws/images"), names)            # doctest: +SKIP
+    >>> cal = calibrate(reconstruction, det)                  # doctest: +SKIP
+    >>> cal.scale, cal.median_residual_px, cal.consistent     # doctest: +SKIP
+    (12.7, 0.41, True)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from plantsplat.cube import CubeSpec, detect_markers
+from plantsplat.io import read_image
+from plantsplat.log import get_logger, progress
+
+log = get_logger(__name__)
+
+
+def detect_all(image_dir: Path, names: list[str], cube: CubeSpec = CubeSpec()) -> dict[str, dict[int, np.ndarray]]:
+    """Detect the cube's markers in every frame: ``{name: {marker_id: corners [4, 2]}}`` (frames with none omitted)."""
+    out: dict[str, dict[int, np.ndarray]] = {}
+    for name in progress(names, "detecting cube markers"):
+        det = detect_markers(read_image(Path(image_dir) / name, mode="gray"), cube)
+        if det:
+            out[name] = det
+    return out
+
+
+@dataclass
+class Calibration:
+    """Result of :func:`calibrate`: ``x_cube = scale * R @ x_model + t``."""
+
+    scale: float
+    R: np.ndarray  # [3, 3]
+    t: np.ndarray  # [3]
+    median_residual_px: float
+    """Median over detections of the RMS reprojection error of a marker's 4 corners (pixels)."""
+    frames_with_markers: int
+    detections_used: int
+    detections_rejected: list = field(default_factory=list)  # [(frame name, marker id, rms px)]
+    frame_residuals_px: dict = field(default_factory=dict)  # {frame name: rms px over its kept markers}
+    inlier_ratio: float = 1.0
+    consistent: bool = True
+
+    def matrix(self) -> np.ndarray:
+        """The 4x4 similarity ``cube_from_model``."""
+        M = np.eye(4)
+        M[:3, :3] = self.scale * self.R
+        M[:3, 3] = self.t
+        return M
+
+    def to_pycolmap(self):
+        import pycolmap
+
+        return pycolmap.Sim3d(self.scale, pycolmap.Rotation3d(self.R), self.t.reshape(3, 1))
+
+    def summary(self) -> dict:
+        return {
+            "scale": self.scale,
+            "R": self.R,
+            "t": self.t,
+            "matrix": self.matrix(),
+            "median_residual_px": self.median_residual_px,
+            "frames_with_markers": self.frames_with_markers,
+            "detections_used": self.detections_used,
+            "detections_rejected": [
+                {"frame": n, "marker": int(m), "rms_px": round(float(e), 2)} for n, m, e in self.detections_rejected
+            ],
+            "inlier_ratio": self.inlier_ratio,
+            "consistent": self.consistent,
+        }
+
+
+def _cam_matrices(rec, names: list[str]):
+    """``{name: (cam_from_world [3, 4], camera)}`` for the registered images among ``names``."""
+    out = {}
+    for img in rec.images.values():
+        if img.name in names and img.has_pose:
+            out[img.name] = (np.asarray(img.cam_from_world().matrix()), rec.cameras[img.camera_id])
+    return out
+
+
+def _project(P: np.ndarray, camera, X: np.ndarray) -> np.ndarray:
+    """Project world points ``X [N, 3]`` with ``P = cam_from_world [3, 4]``; returns pixels ``[N, 2]``."""
+    Xc = X @ P[:, :3].T + P[:, 3]  # [N, 3]
+    Xc[:, 2] = np.maximum(Xc[:, 2], 1e-9)  # behind the camera: huge residual instead of a crash
+    return np.asarray(camera.img_from_cam(Xc, check_cheirality=False)).reshape(-1, 2)
+
+
+def _umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity with ``dst ~ s R src + t`` (Umeyama 1991). ``src, dst [N, 3]``."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    a, b = src - mu_s, dst - mu_d
+    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
+    D = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        D[2, 2] = -1
+    R = U @ D @ Vt
+    s = float(np.trace(np.diag(S) @ D) / (a**2).sum(1).mean())
+    return s, R, mu_d - s * R @ mu_s
+
+
+def calibrate(
+    rec,
+    detections: dict[str, dict[int, np.ndarray]],
+    cube: CubeSpec = CubeSpec(),
+    max_residual_px: float = 3.0,
+    min_frames: int = 2,
+) -> Calibration | None:
+    """Estimate ``cube_from_model`` for the pycolmap Reconstruction ``rec`` from marker ``detections``.
+
+    Returns ``None`` when fewer than ``min_frames`` registered frames show a marker or no marker
+    corner can be triangulated consistently. ``consistent`` is False when the cube does not
+    reproject onto its detections in most frames (a wrong or badly split model).
+    """
+    import pycolmap
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    cams = _cam_matrices(rec, list(detections))
+    obs = [(n, mid, c) for n, d in detections.items() if n in cams for mid, c in d.items()]
+    frames = {n for n, _, _ in obs}
+    if len(frames) < min_frames:
+        return None
+
+    # 1. triangulate each marker corner seen in >= 2 frames
+    tri_opts = pycolmap.EstimateTriangulationOptions()
+    tri_opts.residual_type = pycolmap.TriangulationResidualType.REPROJECTION_ERROR
+    tri_opts.ransac.max_error = 4.0
+    tri_opts.ransac.random_seed = 0
+    model_pts, cube_pts = [], []
+    for mid in sorted({m for _, m, _ in obs}):
+        seen = [(n, c) for n, m, c in obs if m == mid]
+        if len(seen) < 2:
+            continue
+        corners3 = cube.marker_corners(mid)  # [4, 3]
+        for k in range(4):
+            pts = np.array([c[k] for _, c in seen], dtype=np.float64)  # [m, 2]
+            poses = [pycolmap.Rigid3d(cams[n][0]) for n, _ in seen]
+            cameras = [cams[n][1] for n, _ in seen]
+            try:
+                res = pycolmap.estimate_triangulation(pts, poses, cameras, tri_opts)
+            except Exception:  # degenerate geometry (all views from one place)
+                res = None
+            if res is None or int(np.sum(res["inliers"])) < 2:
+                continue
+            model_pts.append(np.asarray(res["xyz"]).ravel())
+            cube_pts.append(corners3[k])
+    if len(model_pts) < 4:
+        return None
+    model_pts, cube_pts = np.array(model_pts), np.array(cube_pts)  # [P, 3]
+
+    # 2. robust similarity model -> cube (the threshold is in centimetres, the cube's units)
+    ransac = pycolmap.RANSACOptions()
+    ransac.max_error = 0.05 * cube.size
+    ransac.random_seed = 0
+    sim = None
+    try:
+        sim = pycolmap.estimate_sim3d_robust(model_pts, cube_pts, ransac)
+    except Exception:
+        sim = None
+    if sim is not None and "tgt_from_src" in (sim if isinstance(sim, dict) else {}):
+        sim = sim["tgt_from_src"]
+    if sim is not None:
+        M = np.asarray(sim.matrix())  # [3, 4] = [sR | t]
+        s0 = float(np.cbrt(np.linalg.det(M[:, :3])))
+        R0, t0 = M[:, :3] / s0, M[:, 3]
+    else:
+        s0, R0, t0 = _umeyama(model_pts, cube_pts)
+    resid = np.linalg.norm((s0 * model_pts @ R0.T + t0) - cube_pts, axis=1)
+    inl = resid < ransac.max_error
+    if inl.sum() >= 4:
+        s0, R0, t0 = _umeyama(model_pts[inl], cube_pts[inl])
+    geometric_ok = inl.sum() >= max(4, 0.5 * len(inl))  # the triangulated corners do form the cube
+
+    # 3. refine the cube's pose in the model by reprojection over all detections
+    # parametrise model_from_cube: x_model = sm * Rm @ x_cube + tm
+    sm, Rm = 1.0 / s0, R0.T
+    tm = -sm * Rm @ t0
+    X = {mid: cube.marker_corners(mid) for mid in {m for _, m, _ in obs}}
+
+    def residuals(p, use):
+        R = Rotation.from_rotvec(p[:3]).as_matrix()
+        s = np.exp(p[6])
+        out = []
+        for (n, mid, c), u in zip(obs, use):
+            if not u:
+                continue
+            Xm = s * X[mid] @ R.T + p[3:6]
+            out.append((_project(cams[n][0], cams[n][1], Xm) - c).ravel())
+        return np.concatenate(out)
+
+    p = np.concatenate([Rotation.from_matrix(Rm).as_rotvec(), tm, [np.log(sm)]])
+    use = np.ones(len(obs), dtype=bool)
+    for _ in range(3):
+        if use.sum() == 0:
+            break
+        p = least_squares(residuals, p, args=(use,), loss="huber", f_scale=1.0, x_scale="jac").x
+        r = residuals(p, np.ones(len(obs), dtype=bool)).reshape(len(obs), 4, 2)
+        rms = np.sqrt((r**2).sum(-1).mean(-1))  # [D] per detection
+        new_use = rms <= max(max_residual_px, 3.0 * float(np.median(rms)))
+        new_use &= rms <= 5.0 * max_residual_px
+        if np.array_equal(new_use, use):
+            break
+        use = new_use
+    Rm = Rotation.from_rotvec(p[:3]).as_matrix()
+    sm, tm = float(np.exp(p[6])), p[3:6]
+    if not np.isfinite(p).all() or abs(np.log(sm * s0)) > np.log(2.0):
+        # the refinement ran away (a wrong model): fall back to the direct fit, flagged inconsistent
+        sm, Rm = 1.0 / s0, R0.T
+        tm = -sm * Rm @ t0
+        geometric_ok = False
+        p = np.concatenate([Rotation.from_matrix(Rm).as_rotvec(), tm, [np.log(sm)]])
+        r = residuals(p, np.ones(len(obs), dtype=bool)).reshape(len(obs), 4, 2)
+        rms = np.sqrt((r**2).sum(-1).mean(-1))
+    s, R = 1.0 / sm, Rm.T
+    t = -s * R @ tm
+
+    kept = rms <= max_residual_px
+    frame_res = {}
+    for n in sorted(frames):
+        e = [rms[i] for i, (name, _, _) in enumerate(obs) if name == n and kept[i]]
+        if e:
+            frame_res[n] = float(np.sqrt(np.mean(np.square(e))))
+    rejected = [(n, mid, float(rms[i])) for i, (n, mid, _) in enumerate(obs) if not kept[i]]
+    ratio = float(kept.mean())
+    med = float(np.median(rms))
+    return Calibration(
+        scale=float(s),
+        R=R,
+        t=np.asarray(t, dtype=np.float64),
+        median_residual_px=med,
+        frames_with_markers=len(frames),
+        detections_used=int(kept.sum()),
+        detections_rejected=rejected,
+        frame_residuals_px=frame_res,
+        inlier_ratio=ratio,
+        consistent=bool(geometric_ok and med <= max_residual_px and ratio >= 0.8),
+    )
+
+
+def up_vector(cal: Calibration | None) -> np.ndarray | None:
+    """The world's +z (gravity up) in the model's original frame, or None without calibration."""
+    if cal is None:
+        return None
+    return cal.R.T @ np.array([0.0, 0.0, 1.0])

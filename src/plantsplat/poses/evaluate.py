@@ -1,0 +1,80 @@
+"""Compare estimated camera poses with reference poses (ground truth or another model).
+
+Both sets are camera-to-world 4x4 matrices in OpenCV axes keyed by image name. A similarity
+``ref ~ s R est + t`` is fitted to the camera centres (Umeyama); errors are reported after it:
+rotation error (degrees, geodesic), camera-centre error (reference units). When both sets are
+metric and in the same world frame (our cube frame and a synthetic capture's ground truth mapped
+into its cube frame), the fitted similarity itself measures the calibration: ``scale_error_pct``
+= ``|s - 1|`` in percent, ``up_error_deg`` = angle by which the fit tilts +z, ``origin_error``
+= ``|t|``.
+
+Example:
+    >>> import numpy as np
+    >>> T = {f"f{i}": np.eye(4) for i in range(3)}
+    >>> for i, k in enumerate(T): T[k][:3, 3] = [i, i * i, 1.0]
+    >>> compare_poses(T, T)["rotation_error_deg"]["median"]
+    0.0
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from plantsplat.poses.calibrate import _umeyama
+
+
+def _stats(x: np.ndarray) -> dict:
+    x = np.asarray(x, dtype=np.float64)
+    return {"median": float(np.median(x)), "mean": float(np.mean(x)), "max": float(np.max(x))} if len(x) else {}
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a rotation matrix in degrees."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+
+
+def compare_poses(est: dict[str, np.ndarray], ref: dict[str, np.ndarray]) -> dict:
+    """Pose errors of ``est`` against ``ref`` (camera-to-world 4x4, OpenCV axes) after a similarity fit.
+
+    Only names present in both are compared; ``n_compared`` says how many.
+    """
+    names = sorted(set(est) & set(ref))
+    if len(names) < 3:
+        raise ValueError(f"need at least 3 common images to compare poses, got {len(names)}")
+    Ce = np.array([np.asarray(est[n])[:3, 3] for n in names])  # [N, 3]
+    Cr = np.array([np.asarray(ref[n])[:3, 3] for n in names])  # [N, 3]
+    s, R, t = _umeyama(Ce, Cr)
+    centre_err = np.linalg.norm(s * Ce @ R.T + t - Cr, axis=1)  # [N]
+    rot_err = np.array(
+        [rotation_angle_deg(np.asarray(ref[n])[:3, :3].T @ R @ np.asarray(est[n])[:3, :3]) for n in names]
+    )
+    up = R @ np.array([0.0, 0.0, 1.0])
+    return {
+        "n_compared": len(names),
+        "rotation_error_deg": _stats(rot_err),
+        "centre_error": _stats(centre_err),
+        "similarity": {"scale": float(s), "R": R.tolist(), "t": t.tolist()},
+        "scale_error_pct": float(abs(s - 1.0) * 100.0),
+        "up_error_deg": float(np.degrees(np.arccos(np.clip(up[2], -1.0, 1.0)))),
+        "frame_rotation_deg": rotation_angle_deg(R),
+        "origin_error": float(np.linalg.norm(t)),
+    }
+
+
+def model_c2w(rec) -> dict[str, np.ndarray]:
+    """``{name: camera-to-world 4x4}`` (OpenCV axes) of the registered images of a pycolmap model."""
+    from plantsplat.poses.interop import c2w_opencv, registered_images
+
+    return {im.name: c2w_opencv(im) for im in registered_images(rec)}
+
+
+def transforms_c2w(data: dict) -> dict[str, np.ndarray]:
+    """``{file name: camera-to-world 4x4}`` (OpenCV axes) from a nerfstudio transforms dict."""
+    from pathlib import Path
+
+    from plantsplat.poses.interop import OPENCV_TO_OPENGL
+
+    return {
+        Path(f["file_path"]).name: np.asarray(f["transform_matrix"], dtype=np.float64) @ OPENCV_TO_OPENGL
+        for f in data["frames"]
+    }

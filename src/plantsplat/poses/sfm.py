@@ -1,0 +1,244 @@
+"""Structure from motion with pycolmap: SIFT features, matching, incremental or global mapping.
+
+Everything runs on the CPU through pycolmap (COLMAP 3.x/4.x bindings). COLMAP's own defaults are
+tuned for unordered photo collections; for a video circling a plant they split the model or
+register a wrong fragment (see issue 4), so :class:`SfmOptions` sets its own defaults: one shared
+camera with a phone-style radial distortion model, a capped number of SIFT features (enough for
+540x960 frames, and it makes exhaustive matching affordable), exhaustive matching for up to
+``exhaustive_max_frames`` frames and sequential matching with a wide quadratic window above.
+
+Example:
+    >>> from plantsplat.poses.sfm import SfmOptions, run_sfm
+    >>> res = run_sfm("ws/images", ["frame_00000.png", ...], "ws/colmap", SfmOptions())  # doctest: +SKIP
+    >>> res.models[0].num_reg_images()  # doctest: +SKIP
+    120
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from plantsplat.errors import PlantsplatError
+from plantsplat.log import get_logger
+
+log = get_logger(__name__)
+
+CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+
+
+@dataclass
+class SfmOptions:
+    """Options of the SfM run (a subset of COLMAP's, with defaults suited to plant videos)."""
+
+    camera_model: str = "RADIAL"
+    """COLMAP camera model shared by all frames (phones: RADIAL = f, cx, cy, k1, k2)."""
+    matcher: str = "auto"
+    """'exhaustive', 'sequential', or 'auto' (exhaustive up to exhaustive_max_frames frames)."""
+    mapper: str = "auto"
+    """'incremental', 'global', or 'auto' (incremental, global when it registers more frames)."""
+    max_features: int = 4096
+    """SIFT features kept per frame."""
+    peak_threshold: float = 0.004
+    """SIFT peak threshold (COLMAP: 0.0067); lower finds more features on plain walls and small frames."""
+    max_image_size: int = 1600
+    """Longest side used for feature extraction (pixels); larger frames are downscaled."""
+    exhaustive_max_frames: int = 160
+    """With matcher 'auto', frame count above which sequential matching is used."""
+    sequential_overlap: int = 20
+    """Sequential matching: neighbours matched on each side (plus quadratic steps beyond)."""
+    num_threads: int = 2
+    """CPU threads for extraction, matching and mapping."""
+    seed: int = 0
+    """Random seed for COLMAP's RANSAC and mapper (repeatable runs)."""
+    verbose: bool = False
+    """Show COLMAP's own log on stderr."""
+
+
+@dataclass
+class SfmResult:
+    models: list  # [pycolmap.Reconstruction], largest first
+    database: Path
+    matcher: str
+    mapper: str
+    timings: dict = field(default_factory=dict)
+
+
+@contextlib.contextmanager
+def colmap_logging(verbose: bool):
+    """Silence COLMAP's output on stderr unless ``verbose`` (restored afterwards).
+
+    glog's level is raised to errors, and file descriptor 2 is sent to /dev/null for the duration
+    because some pycolmap calls (bundle adjustment) print their reports regardless of the level.
+    Do not log from inside this block: it would be swallowed too.
+    """
+    import sys
+
+    import pycolmap
+
+    if verbose:
+        yield
+        return
+    old = pycolmap.logging.minloglevel
+    old_v = pycolmap.logging.verbose_level
+    pycolmap.logging.minloglevel = 2  # errors only
+    pycolmap.logging.verbose_level = 0
+    sys.stderr.flush()
+    saved = os.dup(2)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 2)
+    os.close(devnull)
+    try:
+        yield
+    finally:
+        sys.stderr.flush()
+        os.dup2(saved, 2)
+        os.close(saved)
+        pycolmap.logging.minloglevel = old
+        pycolmap.logging.verbose_level = old_v
+
+
+def choose_matcher(opts: SfmOptions, n: int) -> str:
+    if opts.matcher == "auto":
+        return "exhaustive" if n <= opts.exhaustive_max_frames else "sequential"
+    if opts.matcher not in ("exhaustive", "sequential"):
+        raise PlantsplatError(f"--matcher {opts.matcher!r}: use exhaustive, sequential or auto", exit_code=2)
+    return opts.matcher
+
+
+def extract_and_match(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions) -> tuple[Path, str, dict]:
+    """Extract SIFT features and match them into ``work_dir/database.db`` (rebuilt from scratch).
+
+    Returns ``(database path, matcher used, timings)``.
+    """
+    import pycolmap
+
+    if opts.camera_model not in CAMERA_MODELS:
+        raise PlantsplatError(f"--camera-model {opts.camera_model!r}: use one of {', '.join(CAMERA_MODELS)}", exit_code=2)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    db = work_dir / "database.db"
+    for p in (db, work_dir / "database.db-wal", work_dir / "database.db-shm"):
+        p.unlink(missing_ok=True)
+    timings: dict[str, float] = {}
+    device = pycolmap.Device.cpu
+    pycolmap.set_random_seed(opts.seed)
+    t = time.perf_counter()
+    log.info("SfM: extracting SIFT features from %d frames", len(names))
+    ext = pycolmap.FeatureExtractionOptions()
+    ext.num_threads = opts.num_threads
+    ext.max_image_size = opts.max_image_size
+    ext.sift.max_num_features = opts.max_features
+    ext.sift.peak_threshold = opts.peak_threshold
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = opts.camera_model
+    with colmap_logging(opts.verbose):
+        pycolmap.extract_features(
+            db,
+            image_dir,
+            image_names=names,
+            camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=reader,
+            extraction_options=ext,
+            device=device,
+        )
+    timings["extract_s"] = time.perf_counter() - t
+
+    matcher = choose_matcher(opts, len(names))
+    t = time.perf_counter()
+    mopts = pycolmap.FeatureMatchingOptions()
+    mopts.num_threads = opts.num_threads
+    verif = pycolmap.TwoViewGeometryOptions()
+    verif.ransac.random_seed = opts.seed
+    log.info("SfM: %s matching", matcher)
+    with colmap_logging(opts.verbose):
+        if matcher == "exhaustive":
+            pycolmap.match_exhaustive(db, matching_options=mopts, verification_options=verif, device=device)
+        else:
+            pairing = pycolmap.SequentialPairingOptions()
+            pairing.overlap = opts.sequential_overlap
+            pairing.quadratic_overlap = True
+            pairing.loop_detection = False  # needs a vocabulary tree download
+            pycolmap.match_sequential(
+                db, matching_options=mopts, pairing_options=pairing, verification_options=verif, device=device
+            )
+    timings["match_s"] = time.perf_counter() - t
+    return db, matcher, timings
+
+
+def incremental(db: Path, image_dir: Path, out_dir: Path, opts: SfmOptions, input_path: Path | None = None) -> list:
+    """COLMAP incremental mapping; returns the models found, largest first."""
+    import pycolmap
+
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    out_dir.mkdir(parents=True)
+    o = pycolmap.IncrementalPipelineOptions()
+    o.num_threads = opts.num_threads
+    o.random_seed = opts.seed
+    o.mapper.random_seed = opts.seed
+    o.triangulation.random_seed = opts.seed
+    o.min_model_size = 3
+    # orbits around a small object: neighbouring frames are close, initial pairs need less parallax
+    o.mapper.init_min_tri_angle = 8.0
+    with colmap_logging(opts.verbose):
+        models = pycolmap.incremental_mapping(
+            db, image_dir, out_dir, options=o, input_path=str(input_path) if input_path else ""
+        )
+    return sorted(models.values(), key=lambda r: -r.num_reg_images())
+
+
+def global_sfm(db: Path, image_dir: Path, out_dir: Path, opts: SfmOptions) -> list:
+    """GLOMAP-style global mapping (rotation averaging + global positioning + BA); largest first."""
+    import pycolmap
+
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    out_dir.mkdir(parents=True)
+    o = pycolmap.GlobalPipelineOptions()
+    o.num_threads = opts.num_threads
+    o.random_seed = opts.seed
+    o.mapper.num_threads = opts.num_threads
+    o.mapper.random_seed = opts.seed
+    o.mapper.global_positioning.use_gpu = False
+    o.mapper.bundle_adjustment.ceres.use_gpu = False
+    with colmap_logging(opts.verbose):
+        models = pycolmap.global_mapping(db, image_dir, out_dir, options=o)
+    return sorted(models.values(), key=lambda r: -r.num_reg_images())
+
+
+def refine(rec, db: Path, image_dir: Path, work_dir: Path, opts: SfmOptions, retriangulate: bool = True):
+    """Re-triangulate all matches with the current poses, then a full bundle adjustment.
+
+    Returns the refined reconstruction (a new object when re-triangulated).
+    """
+    import pycolmap
+
+    with colmap_logging(opts.verbose):
+        if retriangulate:
+            out = work_dir / "retriangulated"
+            if out.exists():
+                shutil.rmtree(out)
+            out.mkdir(parents=True)
+            o = pycolmap.IncrementalPipelineOptions()
+            o.num_threads = opts.num_threads
+            o.random_seed = opts.seed
+            rec = pycolmap.triangulate_points(rec, db, image_dir, out, clear_points=True, options=o, refine_intrinsics=True)
+        ba = pycolmap.BundleAdjustmentOptions()
+        ba.refine_focal_length = True
+        ba.refine_extra_params = True
+        ba.refine_principal_point = False
+        ba.ceres.use_gpu = False
+        ba.ceres.solver_options.num_threads = opts.num_threads
+        ba.ceres.solver_options.max_num_iterations = 100
+        ba.print_summary = False
+        pycolmap.bundle_adjustment(rec, ba)
+    return rec
+
+
+def n_threads_env(n: int) -> None:
+    """Cap OpenMP/BLAS threads used inside COLMAP's dependencies."""
+    os.environ.setdefault("OMP_NUM_THREADS", str(n))

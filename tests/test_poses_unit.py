@@ -1,0 +1,234 @@
+"""Fast tests of the poses stage without SfM: cube calibration, COLMAP/nerfstudio interop, bad input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+pycolmap = pytest.importorskip("pycolmap")
+
+from plantsplat.cli import main  # noqa: E402
+from plantsplat.cube import CubeSpec  # noqa: E402
+from plantsplat.errors import PlantsplatError  # noqa: E402
+from plantsplat.poses.calibrate import calibrate  # noqa: E402
+from plantsplat.poses.evaluate import compare_poses, model_c2w, transforms_c2w  # noqa: E402
+from plantsplat.poses.interop import (  # noqa: E402
+    OPENCV_TO_OPENGL,
+    read_colmap,
+    read_transforms,
+    write_colmap,
+    write_transforms,
+)
+
+W, H, F = 540, 960, 700.0
+
+
+def look_at(eye, target):
+    """Camera-to-world (OpenCV axes) at ``eye`` looking at ``target`` with world +z up."""
+    z = target - eye
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    M = np.eye(4)
+    M[:3, :3] = np.stack([x, y, z], 1)
+    M[:3, 3] = eye
+    return M
+
+
+def orbit(n=24, radius=45.0):
+    """Cameras on two rings around the cube (world = cube frame, cm)."""
+    out = {}
+    for i in range(n):
+        a = 2 * np.pi * i / (n // 2)
+        h = 12.0 if i < n // 2 else 35.0
+        out[f"frame_{i:05d}.png"] = look_at(np.array([radius * np.cos(a), radius * np.sin(a), h]), np.array([0, 0, 5.0]))
+    return out
+
+
+def make_rec(c2ws: dict, sim=None):
+    """A pycolmap model with these cameras (PINHOLE), optionally mapped by a similarity model_from_world."""
+    rec = pycolmap.Reconstruction()
+    cam = pycolmap.Camera.create_from_model_name(1, "PINHOLE", F, W, H)
+    cam.params = [F, F, W / 2, H / 2]
+    rec.add_camera_with_trivial_rig(cam)
+    for i, (name, c2w) in enumerate(sorted(c2ws.items())):
+        M = c2w.copy()
+        if sim is not None:
+            s, R, t = sim
+            M[:3, :3] = R @ M[:3, :3]
+            M[:3, 3] = s * R @ M[:3, 3] + t
+        w2c = np.linalg.inv(M)
+        im = pycolmap.Image(name=name, keypoints=np.zeros((0, 2)), camera_id=1, image_id=i + 1)
+        rec.add_image_with_trivial_frame(im, pycolmap.Rigid3d(w2c[:3, :]))
+    return rec
+
+
+def detections_for(c2ws: dict, cube: CubeSpec, rng, noise_px=0.3):
+    """Marker corners as a detector would report them (visible faces only, with pixel noise)."""
+    K = np.array([[F, 0, W / 2], [0, F, H / 2], [0, 0, 1]])
+    det = {}
+    for name, c2w in c2ws.items():
+        w2c = np.linalg.inv(c2w)
+        d = {}
+        for mid in cube.face_ids:
+            c, n, _, _ = cube.face_frame(cube.face_of(mid))
+            if np.dot(c2w[:3, 3] - c, n) <= 0:  # face turned away
+                continue
+            X = cube.marker_corners(mid)
+            Xc = X @ w2c[:3, :3].T + w2c[:3, 3]
+            uv = Xc @ K.T
+            d[mid] = uv[:, :2] / uv[:, 2:] + rng.normal(0, noise_px, (4, 2))
+        if d:
+            det[name] = d
+    return det
+
+
+def random_sim(rng):
+    from scipy.spatial.transform import Rotation
+
+    return float(rng.uniform(0.02, 0.2)), Rotation.random(random_state=int(rng.integers(1 << 30))).as_matrix(), rng.normal(0, 3, 3)
+
+
+def test_calibrate_recovers_similarity():
+    rng = np.random.default_rng(0)
+    cube = CubeSpec()
+    gt = orbit()
+    s, R, t = random_sim(rng)
+    rec = make_rec(gt, (s, R, t))
+    det = detections_for(gt, cube, rng)
+    cal = calibrate(rec, det, cube)
+    assert cal is not None and cal.consistent
+    # cube_from_model must undo model_from_world
+    assert cal.scale == pytest.approx(1 / s, rel=2e-3)
+    assert np.degrees(np.arccos(np.clip((np.trace(cal.R @ R) - 1) / 2, -1, 1))) < 0.2
+    rec.transform(cal.to_pycolmap())
+    err = compare_poses(model_c2w(rec), gt)
+    assert err["scale_error_pct"] < 0.2
+    assert err["up_error_deg"] < 0.1
+    assert err["centre_error"]["median"] < 0.1  # cm
+    assert cal.median_residual_px < 1.0
+
+
+def test_calibrate_rejects_bad_detection_and_flags_wrong_model():
+    rng = np.random.default_rng(1)
+    cube = CubeSpec()
+    gt = orbit()
+    rec = make_rec(gt)
+    det = detections_for(gt, cube, rng)
+    bad = sorted(det)[3]
+    mid = next(iter(det[bad]))
+    det[bad][mid] = det[bad][mid] + 40.0  # a corrupt detection 40 px off
+    cal = calibrate(rec, det, cube)
+    assert cal.consistent
+    assert (bad, mid) in [(n, m) for n, m, _ in cal.detections_rejected]
+    assert cal.scale == pytest.approx(1.0, rel=2e-3)
+    # a wrong model: half of the cameras rotated by 40 degrees about the cube
+    from scipy.spatial.transform import Rotation
+
+    Rz = Rotation.from_euler("z", 40, degrees=True).as_matrix()
+    wrong = {n: (np.block([[Rz, np.zeros((3, 1))], [np.zeros((1, 3)), 1]]) @ M if i % 2 else M) for i, (n, M) in enumerate(sorted(gt.items()))}
+    cal2 = calibrate(make_rec(wrong), det, cube)
+    assert cal2 is None or not cal2.consistent
+
+
+def test_calibrate_without_markers_returns_none():
+    assert calibrate(make_rec(orbit()), {}, CubeSpec()) is None
+
+
+def test_transforms_roundtrip_and_axes(tmp_path):
+    gt = orbit(8)
+    rec = make_rec(gt)
+    data = write_transforms(rec, tmp_path / "transforms.json")
+    assert data["camera_model"] == "OPENCV" and data["w"] == W and data["fl_x"] == F
+    # OpenGL axes: the camera looks along -z of its transform; it must look at the cube (0, 0, 5)
+    for f in data["frames"]:
+        M = np.asarray(f["transform_matrix"])
+        view = -M[:3, 2]
+        to_target = np.array([0, 0, 5.0]) - M[:3, 3]
+        assert np.dot(view, to_target) / np.linalg.norm(to_target) == pytest.approx(1.0, abs=1e-9)
+        assert f["file_path"].startswith("images/frame_")
+    back = read_transforms(tmp_path / "transforms.json")
+    err = compare_poses(model_c2w(back), gt)
+    assert err["rotation_error_deg"]["max"] < 1e-4 and err["centre_error"]["max"] < 1e-6
+    assert err["scale_error_pct"] < 1e-6
+    assert np.allclose(transforms_c2w(data)[sorted(gt)[0]], gt[sorted(gt)[0]])
+    assert np.allclose(OPENCV_TO_OPENGL @ OPENCV_TO_OPENGL, np.eye(4))
+
+
+def test_colmap_roundtrip_binary_and_text(tmp_path):
+    gt = orbit(6)
+    rec = make_rec(gt)
+    write_colmap(rec, tmp_path / "bin")
+    write_colmap(rec, tmp_path / "txt", text=True)
+    write_colmap(rec, tmp_path / "bin")  # overwrite in place
+    for p in (tmp_path / "bin", tmp_path / "txt", tmp_path):  # parent with 0/ is not there: tmp_path fails below
+        if p == tmp_path:
+            with pytest.raises(PlantsplatError):
+                read_colmap(p)
+            continue
+        back = read_colmap(p)
+        assert compare_poses(model_c2w(back), gt)["centre_error"]["max"] < 1e-6
+
+
+def test_broken_imports_are_one_line_errors(tmp_path):
+    (tmp_path / "m").mkdir()
+    (tmp_path / "m" / "cameras.bin").write_bytes(b"\x01\x02garbage")
+    (tmp_path / "m" / "images.bin").write_bytes(b"")
+    (tmp_path / "m" / "points3D.bin").write_bytes(b"")
+    with pytest.raises(PlantsplatError, match="unreadable COLMAP model"):
+        read_colmap(tmp_path / "m")
+    (tmp_path / "t.json").write_text("{not json")
+    with pytest.raises(PlantsplatError, match="not valid JSON"):
+        read_transforms(tmp_path / "t.json")
+    (tmp_path / "t2.json").write_text(json.dumps({"frames": [{"file_path": "a.png", "transform_matrix": [[1]]}], "fl_x": 1, "w": 2, "h": 2}))
+    with pytest.raises(PlantsplatError, match="4x4"):
+        read_transforms(tmp_path / "t2.json")
+
+
+def _workspace(tmp_path, n):
+    from plantsplat.io import write_image_atomic
+
+    ws = tmp_path / "ws"
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        write_image_atomic(ws / "images" / f"frame_{i:05d}.png", rng.integers(0, 255, (H // 8, W // 8, 3), dtype=np.uint8))
+    return ws
+
+
+def test_cli_bad_input(tmp_path, capsys):
+    ws = _workspace(tmp_path, 2)
+    assert main(["poses", str(ws)]) == 1
+    err = capsys.readouterr().err
+    assert "only 2 frame(s)" in err and "Traceback" not in err
+    assert main(["poses", str(tmp_path / "nowhere")]) == 1
+    assert "missing" in capsys.readouterr().err
+    ws = _workspace(tmp_path, 4)
+    (tmp_path / "bad").mkdir()
+    assert main(["poses", str(ws), "--import-colmap", str(tmp_path / "bad")]) == 1
+    err = capsys.readouterr().err
+    assert "no cameras.bin" in err and "Traceback" not in err
+    assert main(["poses", str(ws), "--import-colmap", str(tmp_path), "--import-transforms", str(tmp_path / "t.json")]) == 2
+    assert not (ws / "poses.json").exists()  # nothing written on bad input
+
+
+def test_import_transforms_keeps_poses_and_writes_outputs(tmp_path, capsys):
+    """Frames with no cube: the imported poses are kept as they are, scale_source 'none', all outputs written."""
+    gt = orbit(8)
+    ws = _workspace(tmp_path, 8)
+    write_transforms(make_rec(gt), tmp_path / "user_transforms.json")
+    assert main(["poses", str(ws), "--import-transforms", str(tmp_path / "user_transforms.json")]) == 0
+    report = json.loads((ws / "poses.json").read_text())
+    assert report["registered"] == 8 and report["scale_source"] == "none"
+    data = json.loads((ws / "transforms.json").read_text())
+    err = compare_poses(transforms_c2w(data), gt)
+    assert err["centre_error"]["max"] < 1e-6 and err["rotation_error_deg"]["max"] < 1e-4
+    assert abs(err["similarity"]["scale"] - 1) < 1e-9  # not rescaled
+    assert read_colmap(ws / "sparse" / "0").num_reg_images() == 8
+    assert (ws / "sparse_text" / "0" / "images.txt").is_file() and (ws / "sparse_points.ply").is_file()
+    # resume: a second run with the same options reuses the outputs
+    mtime = (ws / "poses.json").stat().st_mtime_ns
+    assert main(["poses", str(ws), "--import-transforms", str(tmp_path / "user_transforms.json")]) == 0
+    assert (ws / "poses.json").stat().st_mtime_ns == mtime
