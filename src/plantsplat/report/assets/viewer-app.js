@@ -1,0 +1,205 @@
+// plantsplat report viewer: orbit/zoom a Gaussian splat (Spark + three.js) and a point cloud.
+// A classic script (no modules, no fetch) so that report.html works when opened from file://.
+// Data comes from <script type="application/octet-stream"> blocks holding base64:
+//   #splat-data   .splat records, 32 bytes per Gaussian (see plantsplat/report/splat.py)
+//   #points-xyz   float32 little-endian [N, 3];  #points-rgb   uint8 [N, 3]
+// and #viewer-config (JSON): {center: [3], radius, background, splat: bool, points: bool, mode}.
+// window.plantsplatViewer exposes state for tests and benchmarks: state ('loading' | 'ready' | 'error'),
+// error, firstContentMs, setMode(mode), orbit(frames) -> Promise<{fps, msPerFrame, frames}>.
+(function () {
+  "use strict";
+
+  var api = { state: "loading", error: null, firstContentMs: null, readyMs: null, mode: null };
+  window.plantsplatViewer = api;
+
+  function fail(msg) {
+    api.state = "error";
+    api.error = msg;
+    var box = document.getElementById("viewer-message");
+    if (box) { box.textContent = msg; box.style.display = "block"; }
+  }
+
+  function b64ToBytes(text) {
+    var s = text.replace(/\s+/g, "");
+    if (typeof Uint8Array.fromBase64 === "function") return Uint8Array.fromBase64(s);
+    var bin = atob(s);
+    var out = new Uint8Array(bin.length);
+    for (var i = 0; i < bin.length; i++) out[i] = bin.charCodeAt(i);
+    return out;
+  }
+
+  function dataBlock(id) {
+    var el = document.getElementById(id);
+    return el ? b64ToBytes(el.textContent) : null;
+  }
+
+  function webglAvailable() {
+    try {
+      var c = document.createElement("canvas");
+      return !!c.getContext("webgl2");
+    } catch (e) { return false; }
+  }
+
+  function init() {
+    var cfgEl = document.getElementById("viewer-config");
+    var canvas = document.getElementById("viewer-canvas");
+    if (!cfgEl || !canvas) return;  // report without a 3D section
+    var cfg = JSON.parse(cfgEl.textContent);
+    var L = window.PlantsplatViewerLib;
+    if (!L) { fail("The 3D viewer library did not load; the report file may be truncated."); return; }
+    if (!webglAvailable()) { fail("WebGL 2 is not available in this browser, so the 3D view is disabled."); return; }
+    var THREE = L.THREE;
+
+    var renderer = new THREE.WebGLRenderer({ canvas: canvas, antialias: false, preserveDrawingBuffer: true });
+    renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
+    var scene = new THREE.Scene();
+    var bg = new THREE.Color(cfg.background || "#202124");
+    scene.background = bg;
+
+    var center = new THREE.Vector3(cfg.center[0], cfg.center[1], cfg.center[2]);
+    var radius = Math.max(cfg.radius, 1e-3);
+    var camera = new THREE.PerspectiveCamera(45, 1, radius * 0.01, radius * 200);
+    camera.up.set(0, 0, 1);  // world frame: z up (centimetres)
+    function homeView() {
+      var az = -Math.PI / 2.6, el = Math.PI / 7, dist = radius * 2.6;
+      camera.position.set(center.x + dist * Math.cos(el) * Math.cos(az),
+                          center.y + dist * Math.cos(el) * Math.sin(az),
+                          center.z + dist * Math.sin(el));
+      camera.lookAt(center);
+    }
+    homeView();
+    var controls = new L.OrbitControls(camera, canvas);
+    controls.target.copy(center);
+    controls.update();
+
+    // ground grid on z = 0 with 5 cm cells, for scale
+    var cells = Math.max(2, Math.ceil((radius * 2.5) / 5));
+    var grid = new THREE.GridHelper(cells * 5, cells, 0x666666, 0x3a3a3a);
+    grid.rotation.x = Math.PI / 2;
+    scene.add(grid);
+
+    var needsRender = true, autoRotate = false, splat = null, points = null, spark = null;
+    function requestRender() { needsRender = true; }
+
+    function resize() {
+      var w = canvas.clientWidth || 800, h = canvas.clientHeight || 500;
+      renderer.setSize(w, h, false);
+      camera.aspect = w / h;
+      camera.updateProjectionMatrix();
+      requestRender();
+    }
+    window.addEventListener("resize", resize);
+    resize();
+
+    // first frame that shows anything but the background (grid lines are thin and excluded by size)
+    var probe = null;
+    function checkContent() {
+      var gl = renderer.getContext();
+      var w = gl.drawingBufferWidth, h = gl.drawingBufferHeight;
+      if (!probe || probe.length !== w * h * 4) probe = new Uint8Array(w * h * 4);
+      gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, probe);
+      var r = Math.round(bg.r * 255), g = Math.round(bg.g * 255), b = Math.round(bg.b * 255), n = 0;
+      for (var i = 0; i < probe.length; i += 16) {
+        if (Math.abs(probe[i] - r) + Math.abs(probe[i + 1] - g) + Math.abs(probe[i + 2] - b) > 60) n++;
+      }
+      return n / (probe.length / 16);
+    }
+
+    function frame() {
+      if (autoRotate) {
+        var off = camera.position.clone().sub(controls.target);
+        off.applyAxisAngle(new THREE.Vector3(0, 0, 1), 0.01);
+        camera.position.copy(controls.target).add(off);
+        camera.lookAt(controls.target);
+        needsRender = true;
+      }
+      if (needsRender) {
+        needsRender = false;
+        renderer.render(scene, camera);
+        if (api.state === "ready" && api.firstContentMs === null && checkContent() > 0.002) {
+          api.firstContentMs = performance.now();
+        }
+      }
+      requestAnimationFrame(frame);
+    }
+
+    controls.addEventListener("change", requestRender);
+    api.three = { renderer: renderer, scene: scene, camera: camera, controls: controls };
+
+    function setMode(mode) {
+      api.mode = mode;
+      if (splat) splat.visible = mode === "splat" || mode === "both";
+      if (points) points.visible = mode === "points" || mode === "both";
+      var buttons = document.querySelectorAll("[data-viewer-mode]");
+      for (var i = 0; i < buttons.length; i++) {
+        buttons[i].classList.toggle("active", buttons[i].getAttribute("data-viewer-mode") === mode);
+      }
+      requestRender();
+    }
+    api.setMode = setMode;
+    api.home = function () { homeView(); controls.target.copy(center); controls.update(); requestRender(); };
+    api.setAutoRotate = function (on) { autoRotate = !!on; requestRender(); };
+    api.orbit = function (frames) {
+      // rotate the camera a full turn in `frames` rendered frames; resolves with the frame rate
+      frames = frames || 60;
+      return new Promise(function (resolve) {
+        var k = 0, t0 = performance.now(), axis = new THREE.Vector3(0, 0, 1);
+        function step() {
+          var off = camera.position.clone().sub(controls.target);
+          off.applyAxisAngle(axis, (2 * Math.PI) / frames);
+          camera.position.copy(controls.target).add(off);
+          camera.lookAt(controls.target);
+          renderer.render(scene, camera);
+          renderer.getContext().finish();
+          k++;
+          if (k < frames) { requestAnimationFrame(step); return; }
+          var ms = (performance.now() - t0) / frames;
+          resolve({ frames: frames, msPerFrame: ms, fps: 1000 / ms });
+        }
+        requestAnimationFrame(step);
+      });
+    };
+
+    var buttons = document.querySelectorAll("[data-viewer-mode]");
+    for (var i = 0; i < buttons.length; i++) {
+      buttons[i].addEventListener("click", function (ev) { setMode(ev.currentTarget.getAttribute("data-viewer-mode")); });
+    }
+    var homeBtn = document.getElementById("viewer-home");
+    if (homeBtn) homeBtn.addEventListener("click", api.home);
+    var rotBtn = document.getElementById("viewer-rotate");
+    if (rotBtn) rotBtn.addEventListener("click", function () {
+      autoRotate = !autoRotate; rotBtn.classList.toggle("active", autoRotate); requestRender();
+    });
+
+    var pending = [];
+    if (cfg.points) {
+      var xyz = dataBlock("points-xyz"), rgb = dataBlock("points-rgb");
+      var geom = new THREE.BufferGeometry();
+      geom.setAttribute("position", new THREE.BufferAttribute(new Float32Array(xyz.buffer, xyz.byteOffset, xyz.byteLength / 4), 3));
+      geom.setAttribute("color", new THREE.BufferAttribute(rgb, 3, true));
+      var mat = new THREE.PointsMaterial({ size: cfg.point_size || radius * 0.012, vertexColors: true, sizeAttenuation: true });
+      points = new THREE.Points(geom, mat);
+      scene.add(points);
+    }
+    if (cfg.splat) {
+      spark = new L.SparkRenderer({ renderer: renderer, onDirty: requestRender });
+      scene.add(spark);
+      splat = new L.SplatMesh({ fileBytes: dataBlock("splat-data"), fileType: "splat" });
+      scene.add(splat);
+      pending.push(splat.initialized);
+    }
+    setMode(cfg.mode || (cfg.splat ? "splat" : "points"));
+    requestAnimationFrame(frame);
+
+    Promise.all(pending).then(function () {
+      api.state = "ready";
+      api.readyMs = performance.now();
+      requestRender();
+    }, function (err) {
+      fail("Could not load the Gaussian splat: " + (err && err.message ? err.message : err));
+    });
+  }
+
+  if (document.readyState === "loading") document.addEventListener("DOMContentLoaded", init);
+  else init();
+})();
