@@ -1,0 +1,159 @@
+"""Ground truth of a synthetic capture: dense surface samples, PLY files, traits and marker visibility.
+
+``plant_gt.ply`` holds every vertex of the plant's meshes plus area-uniform random samples on its
+triangles (``density`` per cm^2), so that extremes (height, widths) and convex hulls equal those of the
+rendered geometry. ``scene_gt.ply`` adds the cube's five visible faces (organ 10, instance = face index
+in ``plantsplat.cube.FACE_NAMES`` order) with the colours of their marker texture.
+
+Example:
+    >>> import numpy as np
+    >>> from plantsplat.synth.mesh import box_mesh
+    >>> s = sample_surface([box_mesh((0, 0, 0), (1, 1, 1), cls=1)], np.zeros((1, 8, 8, 3), np.uint8), 50.0,
+    ...                    np.random.default_rng(0))
+    >>> s["xyz"].shape[1], s["xyz"][:, 2].max()
+    (3, 1.0)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from plantsplat.io import atomic_path
+from plantsplat.synth.mesh import CUBE_BASE, ORGAN_OF_CLASS, Mesh
+
+CUBE_ORGAN = 10
+PLY_DTYPE = [("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1"),
+             ("organ", "u1"), ("instance", "i4")]
+
+
+def _texture_colour(layers: np.ndarray, layer: int, uv: np.ndarray, tint: np.ndarray) -> np.ndarray:
+    size = layers.shape[1]
+    u = (np.floor(uv[:, 0] * size).astype(np.int64)) % size
+    v = (np.floor(uv[:, 1] * size).astype(np.int64)) % size
+    tex = layers[layer][v, u].astype(np.float64)  # [N, 3]
+    return np.clip(tex * tint, 0, 255).astype(np.uint8)
+
+
+def sample_surface(meshes: list[Mesh], layers: np.ndarray, density: float, rng: np.random.Generator,
+                   organ_of=None) -> dict[str, np.ndarray]:
+    """Vertices plus ``density`` random points per cm^2 on the meshes' triangles.
+
+    Returns ``xyz [N, 3]``, ``rgb [N, 3]`` uint8 (albedo: texture x vertex colour), ``organ [N]``,
+    ``instance [N]``. ``organ_of(mesh)`` gives the organ code (default: the plant organ of the class).
+    """
+    organ_of = organ_of or (lambda m: ORGAN_OF_CLASS[m.cls])
+    xyz, rgb, organ, inst = [], [], [], []
+    for m in meshes:
+        area = m.area()
+        n = int(rng.poisson(density * area.sum()))
+        tri = rng.choice(len(area), size=n, p=area / area.sum()) if n else np.zeros(0, int)
+        r1, r2 = rng.random(n), rng.random(n)
+        s = np.sqrt(r1)
+        bary = np.stack([1 - s, s * (1 - r2), s * r2], 1)  # [n, 3] uniform on a triangle
+        idx = m.f[tri]  # [n, 3]
+        p = np.einsum("nk,nkd->nd", bary, m.v[idx])
+        uv = np.einsum("nk,nkd->nd", bary, m.uv[idx])
+        col = np.einsum("nk,nkd->nd", bary, m.col[idx])
+        p = np.concatenate([m.v, p])
+        uv = np.concatenate([m.uv, uv])
+        col = np.concatenate([m.col, col])
+        xyz.append(p)
+        rgb.append(_texture_colour(layers, m.layer, uv, col))
+        organ.append(np.full(len(p), organ_of(m), np.uint8))
+        inst.append(np.full(len(p), m.instance, np.int32))
+    return dict(xyz=np.concatenate(xyz), rgb=np.concatenate(rgb), organ=np.concatenate(organ),
+                instance=np.concatenate(inst))
+
+
+def cube_samples(cube_meshes: list[Mesh], layers: np.ndarray, density: float, rng: np.random.Generator) -> dict:
+    """Samples on the cube's faces except the bottom one (it stands on the platform and is never seen)."""
+    faces = [m for m in cube_meshes if m.cls != CUBE_BASE + 5]
+    return sample_surface(faces, layers, density, rng, organ_of=lambda m: CUBE_ORGAN)
+
+
+def write_ply(path: str | Path, s: dict[str, np.ndarray]) -> None:
+    """Binary little-endian PLY with x, y, z (float32), red, green, blue, organ (uchar), instance (int32)."""
+    from plyfile import PlyData, PlyElement
+
+    arr = np.empty(len(s["xyz"]), dtype=PLY_DTYPE)
+    arr["x"], arr["y"], arr["z"] = s["xyz"].astype("f4").T
+    arr["red"], arr["green"], arr["blue"] = s["rgb"].T
+    arr["organ"] = s["organ"]
+    arr["instance"] = s["instance"]
+    with atomic_path(path) as tmp:
+        PlyData([PlyElement.describe(arr, "vertex")], text=False, byte_order="<").write(str(tmp))
+
+
+def read_ply(path: str | Path) -> dict[str, np.ndarray]:
+    """Read a PLY written by :func:`write_ply` back into ``xyz``, ``rgb``, ``organ``, ``instance``."""
+    from plyfile import PlyData
+
+    v = PlyData.read(str(path))["vertex"].data
+    return dict(xyz=np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float64),
+                rgb=np.stack([v["red"], v["green"], v["blue"]], 1), organ=np.asarray(v["organ"]),
+                instance=np.asarray(v["instance"]))
+
+
+def traits(xyz: np.ndarray, n_fruits: int) -> dict[str, float]:
+    """Ground-truth traits with the shared definitions of :mod:`plantsplat.traitdefs`."""
+    from plantsplat.traitdefs import geometric_traits
+
+    t = geometric_traits(xyz)
+    t["fruit_count"] = int(n_fruits)
+    return t
+
+
+def markers_visible(ids: np.ndarray, c2w: np.ndarray, K: np.ndarray, markers: dict[str, np.ndarray],
+                    cube, T_world_cube: np.ndarray, min_cos: float = 0.3, min_side_px: float = 14.0,
+                    min_unoccluded: float = 0.98, margin_px: float = 3.0) -> list[int]:
+    """Marker ids whose face looks at the camera and whose square is in the image and unoccluded.
+
+    A marker counts as visible when its face normal makes less than ``acos(min_cos)`` with the
+    direction to the camera, its projected square lies ``margin_px`` inside the image, its shortest
+    projected side is at least ``min_side_px`` and at least ``min_unoccluded`` of the pixels inside
+    the square show that face in the id pass.
+    """
+    import cv2
+
+    from plantsplat.cube import FACE_NAMES
+
+    H, W = ids.shape
+    w2c = np.linalg.inv(c2w)
+    eye = c2w[:3, 3]
+    out = []
+    for i, face in enumerate(FACE_NAMES):
+        mid = cube.face_ids[i]
+        X = np.asarray(markers[str(mid)])  # [4, 3] world
+        c, n, _, _ = cube.face_frame(face)
+        nw = T_world_cube[:3, :3] @ n
+        cw = T_world_cube[:3, :3] @ c + T_world_cube[:3, 3]
+        to_cam = eye - cw
+        if np.dot(nw, to_cam) / np.linalg.norm(to_cam) < min_cos:
+            continue
+        Xc = X @ w2c[:3, :3].T + w2c[:3, 3]
+        if np.any(Xc[:, 2] <= 1.0):
+            continue
+        uv = (Xc @ K.T)[:, :2] / Xc[:, 2:3]
+        if np.any(uv < margin_px) or np.any(uv[:, 0] > W - 1 - margin_px) or np.any(uv[:, 1] > H - 1 - margin_px):
+            continue
+        sides = np.linalg.norm(uv - np.roll(uv, -1, axis=0), axis=1)
+        if sides.min() < min_side_px:
+            continue
+        poly = np.zeros((H, W), np.uint8)
+        cv2.fillConvexPoly(poly, np.round(uv * 16).astype(np.int32), 1, cv2.LINE_8, shift=4)
+        inside = poly.astype(bool)
+        if inside.sum() == 0:
+            continue
+        if np.mean(ids[inside] == CUBE_BASE + i) >= min_unoccluded:
+            out.append(int(mid))
+    return out
+
+
+def project(K: np.ndarray, c2w: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Pixel coordinates ``[N, 2]`` (OpenCV convention) of world points ``X [N, 3]``."""
+    w2c = np.linalg.inv(c2w)
+    Xc = X @ w2c[:3, :3].T + w2c[:3, 3]
+    uv = Xc @ K.T
+    return uv[:, :2] / uv[:, 2:3]
