@@ -117,7 +117,8 @@ def generate(cfg: SynthConfig) -> dict:
     sensor = SensorModel.draw(np.random.default_rng(s_sensor), cfg.frames, clean=cfg.clean)
     t = time.perf_counter()
     renderer = Renderer(scene["meshes"], layers, intr, scene["lights"], samples=cfg.msaa,
-                        shadow_radius=scene["platform"]["radius_cm"] + 100.0)
+                        shadow_radius=scene["platform"]["radius_cm"] + 100.0,
+                        shadow_size=4096 if max(cfg.width, cfg.height) > 720 else 2048)
     timings["gl_setup_s"] = time.perf_counter() - t
     log.info("rendering %d frames at %dx%d (%s)", cfg.frames, cfg.width, cfg.height, renderer.ctx.info["GL_RENDERER"])
     axis_pt = np.array([[0.0, 0.0, pot.soil_z]])

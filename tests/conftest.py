@@ -1,0 +1,48 @@
+"""Shared pytest fixtures.
+
+- ``synth_capture``: a factory that renders a small synthetic capture with ``plantsplat synth`` once per
+  session and argument set, e.g. ``cap = synth_capture(seed=0, frames=36, width=180, height=320)``
+  returns the capture folder (``video.mp4``, ``frames/``, ``masks/``, ``plant_gt.ply``,
+  ``scene_gt.ply``, ``ground_truth.json``). Extra keyword arguments go to ``SynthConfig`` (e.g.
+  ``clean=True``). Treat the folder as read-only: other tests share it.
+- ``datasets_dir``: the shared real/virtual datasets folder (``PLANTSPLAT_DATASETS`` overrides
+  ``<repo>/../shared/datasets``), or a skip with a message when it is absent.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+os.environ["PLANTSPLAT_NO_PROGRESS"] = "1"
+
+
+@pytest.fixture(scope="session")
+def synth_capture(tmp_path_factory):
+    """``make(seed=0, frames=36, width=180, height=320, **cfg) -> Path``, cached per argument set."""
+    from plantsplat.synth import SynthConfig, generate
+
+    cache: dict[tuple, Path] = {}
+
+    def make(seed: int = 0, frames: int = 36, width: int = 180, height: int = 320, **kw) -> Path:
+        key = (seed, frames, width, height, tuple(sorted(kw.items())))
+        if key not in cache:
+            name = f"synth_s{seed}_f{frames}_{width}x{height}" + "".join(f"_{k}{v}" for k, v in sorted(kw.items()))
+            out = tmp_path_factory.mktemp(name)
+            generate(SynthConfig(out=out, seed=seed, frames=frames, width=width, height=height, force=True, **kw))
+            cache[key] = out
+        return cache[key]
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def datasets_dir() -> Path:
+    """The shared datasets folder, or skip when it is not there."""
+    env = os.environ.get("PLANTSPLAT_DATASETS")
+    path = Path(env) if env else Path(__file__).resolve().parents[2] / "shared" / "datasets"
+    if not path.is_dir():
+        pytest.skip(f"datasets folder {path} not found (set PLANTSPLAT_DATASETS to run these tests)")
+    return path
