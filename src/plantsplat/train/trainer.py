@@ -1,0 +1,468 @@
+"""The training loop: object-centric (RGBA, random background) or full-frame 3DGS, resumable.
+
+Object mode (the paper, section 2.3): every step renders a training view, composites it over a
+random colour ``B`` (``C_hat = C_splat + (1 - alpha_acc) * B``) and compares it with the frame
+composited over the same ``B`` through its mask (``C = alpha_img * I + (1 - alpha_img) * B``), with
+``(1 - 0.2) * L1 + 0.2 * (1 - SSIM)``. Outside the mask the target is ``B`` itself, which changes
+every step, so the only way to match it is transparency: Gaussians there lose opacity and are
+culled below 0.1. Full mode is plain RGB 3DGS on whole frames (the paper's Splatfacto baseline);
+PBR is the full model evaluated with the masks applied after training (see :mod:`.evaluate`).
+
+Example:
+    >>> from plantsplat.workspace import Workspace
+    >>> summary = train_workspace(Workspace("ws/plant_01"), TrainConfig(iterations=500))  # doctest: +SKIP
+    >>> summary["n_gaussians"]  # doctest: +SKIP
+    41210
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+
+from plantsplat.errors import PlantsplatError
+from plantsplat.io import write_json_atomic
+from plantsplat.log import get_logger, make_progress
+from plantsplat.train import data as D
+from plantsplat.train.metrics import ssim
+from plantsplat.train.model import (
+    activated,
+    init_params,
+    load_checkpoint,
+    make_optimizers,
+    params_from_checkpoint,
+    save_checkpoint,
+)
+from plantsplat.train.strategy import DensityStrategy
+from plantsplat.workspace import Workspace
+
+log = get_logger(__name__)
+
+PRESETS = ("cpu", "paper")
+
+
+@dataclass
+class TrainConfig:
+    """Training options (``plantsplat train``). ``None`` fields take the preset's value."""
+
+    mode: Literal["object", "full"] = "object"
+    """object: RGBA supervision with random backgrounds (the paper's method); full: whole-frame RGB 3DGS (Splatfacto baseline)."""
+    backend: Literal["auto", "cpu", "gsplat"] = "auto"
+    """Rasterizer: auto = gsplat with CUDA, else the numba CPU backend."""
+    preset: Literal["auto", "cpu", "paper"] = "auto"
+    """Recipe: cpu = few iterations, resolution schedule, foreground crops; paper = 30k iterations (gsplat). auto = paper on CUDA, cpu otherwise."""
+    iterations: int | None = None
+    """Training steps (cpu preset: 2000, paper: 30000)."""
+    test_fraction: float = 0.4
+    """Fraction of frames held out for testing (paper: 60/40), evenly spaced."""
+    test_every: int = 0
+    """Hold out every k-th frame instead of --test-fraction (0 = off)."""
+    sh_degree: int | None = None
+    """Final spherical-harmonic degree (cpu: 2, paper: 3); raised by one every sh-interval steps."""
+    max_resolution: int | None = None
+    """Longest image side used for training and evaluation, px (cpu: 960, paper: no limit)."""
+    num_downscales: int | None = None
+    """Start at 1/2^k resolution and double it on a schedule (cpu: 2, paper: 2 as splatfacto)."""
+    crop: bool | None = None
+    """Object mode: render only the foreground's bounding box (plus a margin) during training (cpu: on)."""
+    max_gaussians: int | None = None
+    """Cap on the number of Gaussians (cpu: 200000, paper: none)."""
+    init_points: int = 20_000
+    """Random initial Gaussians when the SfM points are too few."""
+    seed: int = 0
+    """Random seed (split, initialisation, backgrounds)."""
+    checkpoint_seconds: float = 60.0
+    """Write a checkpoint at least this often (seconds); an interrupted run resumes from it."""
+    threads: int = 0
+    """CPU threads (0 = all cores)."""
+    evaluate: bool = True
+    """Compute PSNR/SSIM/LPIPS, render FPS and memory on the test views after training."""
+    lpips_weights: Path | None = None
+    """LPIPS(alex) weights file (default: $PLANTSPLAT_LPIPS_WEIGHTS, the lpips package, ../shared/weights)."""
+    force: bool = False
+    """Retrain from scratch even if a finished model or checkpoint exists (files are overwritten one by one)."""
+    train_dir: Path | None = None
+    """Where split, checkpoints and the model go (default WS/train)."""
+    metrics_path: Path | None = None
+    """Where metrics are written (default WS/metrics.json)."""
+
+    def resolved(self) -> ResolvedConfig:
+        from plantsplat.raster import resolve_backend
+
+        backend = resolve_backend(self.backend)
+        preset = self.preset if self.preset != "auto" else ("paper" if backend == "gsplat" else "cpu")
+        paper = preset == "paper"
+        r = ResolvedConfig(
+            mode=self.mode,
+            backend=backend,
+            preset=preset,
+            iterations=self.iterations or (30_000 if paper else 2000),
+            sh_degree=self.sh_degree if self.sh_degree is not None else (3 if paper else 2),
+            max_resolution=self.max_resolution if self.max_resolution is not None else (0 if paper else 960),
+            num_downscales=self.num_downscales if self.num_downscales is not None else 2,
+            crop=self.crop if self.crop is not None else (not paper),
+            max_gaussians=self.max_gaussians if self.max_gaussians is not None else (0 if paper else 200_000),
+            seed=self.seed,
+        )
+        if r.iterations < 1:
+            raise PlantsplatError(f"--iterations {r.iterations}: must be at least 1", exit_code=2)
+        if not 0 <= r.sh_degree <= 3:
+            raise PlantsplatError(f"--sh-degree {r.sh_degree}: must be 0..3", exit_code=2)
+        if not 0.0 < self.test_fraction < 1.0 and not self.test_every:
+            raise PlantsplatError(f"--test-fraction {self.test_fraction}: must be between 0 and 1", exit_code=2)
+        return r
+
+
+@dataclass
+class ResolvedConfig:
+    """The recipe actually used (stored in checkpoints and metrics)."""
+
+    mode: str
+    backend: str
+    preset: str
+    iterations: int
+    sh_degree: int
+    max_resolution: int
+    num_downscales: int
+    crop: bool
+    max_gaussians: int
+    seed: int
+    ssim_lambda: float = 0.2
+    lr_means: float = 1.6e-4
+    lr_means_final: float = 1.6e-6
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    lr_opacities: float = 5e-2
+    lr_sh0: float = 2.5e-3
+    lr_shN: float = 2.5e-3 / 20
+    init_opacity: float = 0.1
+    strategy: dict = field(default_factory=dict)
+
+    def schedule(self) -> dict:
+        """Step numbers of the schedules, scaled to the iteration count (splatfacto's at 30k)."""
+        n = self.iterations
+        if self.preset == "paper":
+            return {"sh_interval": 1000, "res_interval": 3000, "refine_start": 500, "refine_stop": 15_000,
+                    "refine_every": 100, "reset_every": 3000}
+        # CPU recipe: the same shape compressed into `n` steps
+        return {
+            "sh_interval": max(1, int(0.1 * n)),
+            "res_interval": max(1, int(0.15 * n)),
+            "refine_start": max(1, int(0.05 * n)),
+            "refine_stop": int(0.7 * n),
+            "refine_every": max(10, int(n / 40)),
+            "reset_every": 0 if n < 1500 else int(0.35 * n),
+        }
+
+
+# ---------------------------------------------------------------------------------------------
+# images at several resolutions
+
+
+class ImageCache:
+    """Per view, per downscale factor: image ``[h, w, 3]`` and alpha ``[h, w, 1]`` float tensors."""
+
+    def __init__(self, views: list[D.View], base_scale: float):
+        self.views = {v.name: v for v in views}
+        self.base_scale = base_scale  # full resolution -> largest training resolution
+        self._cache: dict[tuple[str, int], tuple] = {}
+
+    def get(self, name: str, down: int):
+        import cv2
+
+        key = (name, down)
+        if key not in self._cache:
+            v = self.views[name]
+            s = self.base_scale / down
+            w, h = max(1, round(v.width * s)), max(1, round(v.height * s))
+            interp = cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR
+            img = cv2.resize(v.image, (w, h), interpolation=interp) if (w, h) != (v.width, v.height) else v.image
+            img_t = torch.from_numpy(np.ascontiguousarray(img)).float() / 255.0  # [h, w, 3]
+            if v.mask is not None:
+                m = cv2.resize(v.mask, (w, h), interpolation=interp) if (w, h) != (v.width, v.height) else v.mask
+                a_t = torch.from_numpy(np.ascontiguousarray(m)).float()[..., None] / 255.0  # [h, w, 1]
+            else:
+                a_t = None
+            K = v.K.copy()
+            K[0, :] *= w / v.width
+            K[1, :] *= h / v.height
+            self._cache[key] = (img_t, a_t, torch.tensor(K, dtype=torch.float32), w, h)
+        return self._cache[key]
+
+
+def foreground_box(alpha: torch.Tensor, margin_frac: float = 0.08, min_margin: int = 8) -> tuple[int, int, int, int]:
+    """Bounding box ``(x0, y0, x1, y1)`` of ``alpha > 0`` ``[h, w, 1]`` grown by a margin; the whole
+    image when the mask is empty."""
+    h, w = alpha.shape[:2]
+    ys, xs = torch.nonzero(alpha[..., 0] > 0.01, as_tuple=True)
+    if len(xs) == 0:
+        return 0, 0, w, h
+    mx = max(min_margin, int(margin_frac * w))
+    my = max(min_margin, int(margin_frac * h))
+    x0, x1 = max(0, int(xs.min()) - mx), min(w, int(xs.max()) + 1 + mx)
+    y0, y1 = max(0, int(ys.min()) - my), min(h, int(ys.max()) + 1 + my)
+    return x0, y0, x1, y1
+
+
+def render(params, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int, sh_degree: int, backend: str):
+    """Rasterize the model's Gaussians (activating the parameters) into one view."""
+    from plantsplat.raster import rasterize
+
+    k = (sh_degree + 1) ** 2
+    colors = torch.cat([params["sh0"], params["shN"][:, : k - 1]], dim=1)  # [N, k, 3]
+    return rasterize(
+        params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]),
+        colors, viewmat, K, width, height, sh_degree=sh_degree, backend=backend,
+    )
+
+
+def scene_scale(views: list[D.View]) -> float:
+    """1.1 x the largest distance of a camera centre from their mean (as gsplat's trainer)."""
+    c = np.stack([v.center for v in views])
+    return float(np.linalg.norm(c - c.mean(0), axis=1).max() * 1.1) or 1.0
+
+
+# ---------------------------------------------------------------------------------------------
+# the loop
+
+
+def _paths(ws: Workspace, cfg: TrainConfig) -> dict[str, Path]:
+    tdir = Path(cfg.train_dir) if cfg.train_dir else ws.train_dir
+    return {
+        "dir": tdir,
+        "split": tdir / "split.json",
+        "ckpt": tdir / "checkpoint.pt",
+        "model": tdir / "model.pt",
+        "config": tdir / "config.json",
+        "metrics": Path(cfg.metrics_path) if cfg.metrics_path else ws.metrics_json,
+    }
+
+
+def model_path(ws: Workspace, train_dir: Path | None = None) -> Path:
+    return (Path(train_dir) if train_dir else ws.train_dir) / "model.pt"
+
+
+def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None = None) -> dict:
+    """Train (or resume, or skip when finished) a 3DGS model of a workspace; returns a summary.
+
+    Writes ``train/split.json``, ``train/checkpoint.pt`` (periodically, atomically),
+    ``train/model.pt`` (final), ``train/config.json`` and, with ``cfg.evaluate``, ``metrics.json``.
+
+    Example:
+        >>> summary = train_workspace("ws/plant_01", TrainConfig(mode="object"))  # doctest: +SKIP
+    """
+    ws = ws if isinstance(ws, Workspace) else Workspace(ws)
+    cfg = cfg or TrainConfig()
+    rc = cfg.resolved()
+    paths = _paths(ws, cfg)
+    torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
+
+    if paths["model"].is_file() and not cfg.force:
+        blob = load_checkpoint(paths["model"])
+        done = blob["extra"].get("config", {})
+        if done.get("mode") != rc.mode:
+            raise PlantsplatError(
+                f"{paths['model']}: holds a finished {done.get('mode')!r}-mode model; pass --force to retrain in "
+                f"{rc.mode!r} mode, or --train-dir to keep both"
+            )
+        log.info("%s: finished model found (%d steps); skipping training (--force retrains)",
+                 paths["model"], blob["step"])
+        summary = dict(blob["extra"].get("summary", {}))
+        if cfg.evaluate and not paths["metrics"].is_file():
+            from plantsplat.train.evaluate import evaluate_workspace
+
+            summary["metrics"] = evaluate_workspace(ws, train_dir=paths["dir"], metrics_path=paths["metrics"],
+                                                    lpips_weights=cfg.lpips_weights, backend=rc.backend,
+                                                    train_summary=summary)
+        return summary
+
+    object_mode = rc.mode == "object"
+    scene = D.load_scene(ws, need_masks=object_mode)
+    names = [v.name for v in scene.views]
+    split = D.load_or_make_split(paths["split"], names, cfg.test_fraction, cfg.test_every)
+    train_views = [v for v in scene.views if v.name in set(split["train"])]
+    if not train_views:
+        raise PlantsplatError(f"{paths['split']}: no training frame has a pose; delete it and re-run")
+    log.info("%d training and %d test frames (%s); poses from %s", len(train_views), len(split["test"]),
+             split["method"], scene.pose_source)
+
+    sscale = scene_scale(scene.views)
+    sched = rc.schedule()
+    strategy = DensityStrategy(
+        prune_opa=0.1, refine_start_iter=sched["refine_start"], refine_stop_iter=sched["refine_stop"],
+        refine_every=sched["refine_every"], reset_every=sched["reset_every"],
+        max_gaussians=rc.max_gaussians,
+    )
+    rc.strategy = asdict(strategy)
+    max_side = max(max(v.width, v.height) for v in scene.views)
+    base_scale = min(1.0, rc.max_resolution / max_side) if rc.max_resolution else 1.0
+    cache = ImageCache(scene.views, base_scale)
+
+    rng = np.random.default_rng(rc.seed)
+    torch.manual_seed(rc.seed)
+    start = 0
+    resumed = False
+    if paths["ckpt"].is_file() and not cfg.force:
+        blob = load_checkpoint(paths["ckpt"])
+        old = blob["extra"].get("config", {})
+        if old.get("mode") != rc.mode or old.get("iterations") != rc.iterations:
+            raise PlantsplatError(
+                f"{paths['ckpt']}: an unfinished {old.get('mode')!r}-mode run of {old.get('iterations')} steps; "
+                "re-run with the same options to resume it, or pass --force to start again"
+            )
+        params = params_from_checkpoint(blob)
+        optimizers = make_optimizers(params, _lrs(rc, sscale))
+        for k, o in optimizers.items():
+            o.load_state_dict(blob["optimizers"][k])
+            o.param_groups[0]["params"] = [params[k]]
+            # load_state_dict keys state by the original parameter; rebind to the new one
+        state = dict(blob["strategy_state"])
+        start = int(blob["step"])
+        elapsed0 = float(blob["extra"].get("train_seconds", 0.0))
+        if "rng" in blob["extra"]:
+            rng.bit_generator.state = blob["extra"]["rng"]
+        resumed = True
+        log.info("resuming %s from step %d of %d (%d Gaussians)", paths["ckpt"], start, rc.iterations,
+                 params["means"].shape[0])
+    else:
+        pts, cols, how = D.initial_points(scene, train_views, object_mode, cfg.init_points, rng)
+        params = init_params(pts, cols, rc.sh_degree, rc.init_opacity, seed=rc.seed)
+        optimizers = make_optimizers(params, _lrs(rc, sscale))
+        state = strategy.initialize_state(sscale)
+        elapsed0 = 0.0
+        log.info("initialised %d Gaussians from %s; scene scale %.1f", len(pts), how, sscale)
+    write_json_atomic(paths["config"], {"requested": _jsonable(asdict(cfg)), "resolved": asdict(rc)})
+
+    extra_base = {"config": asdict(rc), "split": split}
+    means_decay = (rc.lr_means_final / rc.lr_means) ** (1.0 / max(1, rc.iterations))
+    order: list[int] = []
+    last_good = start
+    t_start = time.perf_counter()
+    last_ckpt = t_start
+    loss_ema = psnr_ema = None
+
+    def checkpoint(step: int) -> None:
+        extra = dict(extra_base, train_seconds=elapsed0 + time.perf_counter() - t_start,
+                     rng=rng.bit_generator.state)
+        save_checkpoint(paths["ckpt"], step, params, optimizers, state, extra)
+
+    with make_progress() as bar:
+        task = bar.add_task(f"training ({rc.mode})", total=rc.iterations, completed=start, info="")
+        step = start
+        for step in range(start, rc.iterations):
+            if not order:
+                order = list(rng.permutation(len(train_views)))
+            view = train_views[order.pop()]
+            down = 2 ** max(0, rc.num_downscales - step // sched["res_interval"])
+            sh_deg = min(rc.sh_degree, step // sched["sh_interval"])
+            img, alpha, K, w, h = cache.get(view.name, down)
+            viewmat = torch.tensor(view.viewmat, dtype=torch.float32)
+            if object_mode and rc.crop:
+                x0, y0, x1, y1 = foreground_box(alpha)
+            else:
+                x0, y0, x1, y1 = 0, 0, w, h
+            Kc = K.clone()
+            Kc[0, 2] -= x0
+            Kc[1, 2] -= y0
+            gt = img[y0:y1, x0:x1]  # [h', w', 3]
+            bg = torch.from_numpy(rng.random(3)).float()  # [3] random background each step
+            if object_mode:
+                a = alpha[y0:y1, x0:x1]  # [h', w', 1]
+                gt = gt * a + (1.0 - a) * bg
+
+            for g in optimizers["means"].param_groups:
+                g["lr"] = rc.lr_means * sscale * means_decay**step
+            try:
+                out = render(params, viewmat, Kc, x1 - x0, y1 - y0, sh_deg, rc.backend)
+            except PlantsplatError as exc:  # non-finite parameters: the previous step diverged
+                _diverged(paths, last_good, exc)
+            strategy.step_pre_backward(params, optimizers, state, step, out)
+            pred = out.color + (1.0 - out.alpha) * bg  # [h', w', 3]
+            l1 = (pred - gt).abs().mean()
+            loss = (1 - rc.ssim_lambda) * l1 + rc.ssim_lambda * (1 - ssim(pred, gt))
+            if not torch.isfinite(loss):
+                _diverged(paths, last_good, None)
+            loss.backward()
+            # grads are w.r.t. crop pixels; normalise by the full (downscaled) image size as gsplat
+            strategy.step_post_backward(params, optimizers, state, step, out, w, h)
+            for o in optimizers.values():
+                o.step()
+                o.zero_grad(set_to_none=True)
+
+            with torch.no_grad():
+                lv = float(loss)
+                pv = float(-10 * torch.log10(((pred - gt) ** 2).mean().clamp_min(1e-10)))
+            loss_ema = lv if loss_ema is None else 0.9 * loss_ema + 0.1 * lv
+            psnr_ema = pv if psnr_ema is None else 0.9 * psnr_ema + 0.1 * pv
+            bar.update(task, completed=step + 1,
+                       info=f"loss {loss_ema:.4f}  PSNR {psnr_ema:5.2f}  {params['means'].shape[0]:,} Gaussians  1/{down}")
+            now = time.perf_counter()
+            if now - last_ckpt > cfg.checkpoint_seconds:
+                checkpoint(step + 1)
+                last_good = step + 1
+                last_ckpt = now
+            if step % max(1, rc.iterations // 10) == 0:
+                log.debug("step %d loss %.4f psnr %.2f n=%d", step, loss_ema, psnr_ema, params["means"].shape[0])
+
+    culled = strategy.final_cull(params, optimizers)
+    train_seconds = elapsed0 + time.perf_counter() - t_start
+    n_final = int(params["means"].shape[0])
+    log.info("trained %d steps in %.1f s; %d Gaussians (%d culled below opacity %.2f)", rc.iterations,
+             train_seconds, n_final, culled, strategy.prune_opa)
+    summary = {
+        "mode": rc.mode, "backend": rc.backend, "preset": rc.preset, "iterations": rc.iterations,
+        "train_seconds": round(train_seconds, 2), "n_gaussians": n_final, "resumed": resumed,
+        "train_resolution_scale": base_scale, "final_loss": loss_ema, "final_train_psnr": psnr_ema,
+        "scene_scale": sscale,
+    }
+    save_checkpoint(paths["model"], rc.iterations, params, optimizers, state, dict(extra_base, summary=summary,
+                                                                                 train_seconds=train_seconds))
+    paths["ckpt"].unlink(missing_ok=True)
+    if cfg.evaluate:
+        from plantsplat.train.evaluate import evaluate_workspace
+
+        summary["metrics"] = evaluate_workspace(ws, train_dir=paths["dir"], metrics_path=paths["metrics"],
+                                                lpips_weights=cfg.lpips_weights, backend=rc.backend,
+                                                train_summary=summary, scene=scene)
+    return summary
+
+
+def _diverged(paths: dict, last_good: int, exc: Exception | None):
+    what = f" ({exc})" if exc else ""
+    kept = f"the last good checkpoint (step {last_good}) is kept in {paths['ckpt']}" if paths["ckpt"].is_file() else \
+        "no checkpoint was written yet"
+    raise PlantsplatError(
+        f"training diverged: the loss became NaN/inf{what}; {kept}; lower the learning rates or check the "
+        "frames and poses, then re-run (or pass --force to start again)"
+    )
+
+
+def _lrs(rc: ResolvedConfig, sscale: float) -> dict[str, float]:
+    return {"means": rc.lr_means * sscale, "scales": rc.lr_scales, "quats": rc.lr_quats,
+            "opacities": rc.lr_opacities, "sh0": rc.lr_sh0, "shN": rc.lr_shN}
+
+
+def _jsonable(d: dict) -> dict:
+    return {k: (str(v) if isinstance(v, Path) else v) for k, v in d.items()}
+
+
+def load_model(ws: Workspace, train_dir: Path | None = None) -> tuple[torch.nn.ParameterDict, dict]:
+    """The finished model of a workspace: parameters and the checkpoint's ``extra`` (config, split)."""
+    p = model_path(ws, train_dir)
+    if not p.is_file():
+        ck = p.parent / "checkpoint.pt"
+        hint = " (an unfinished run's checkpoint exists: re-run it to finish)" if ck.is_file() else ""
+        raise PlantsplatError(f"{p}: no trained model{hint}; run `plantsplat train {ws.root}` first")
+    blob = load_checkpoint(p)
+    return params_from_checkpoint(blob), blob["extra"]
+
+
+def ema(x: float | None, v: float) -> float:
+    return v if x is None or math.isnan(x) else 0.9 * x + 0.1 * v
