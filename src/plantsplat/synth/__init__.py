@@ -9,7 +9,7 @@ Example:
 
 Outputs (``OUT/``): ``video.mp4`` (H.264, 24 fps), ``frames/frame_00000.png`` (the same frames,
 lossless), ``masks/frame_00000.png`` (255 = plant or cube), ``plant_gt.ply``, ``scene_gt.ply`` and
-``ground_truth.json``. See :mod:`plantsplat.synth.generate`.
+``ground_truth.json``. See :mod:`plantsplat.synth.capture`.
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ class SynthConfig:
 
 def generate(cfg: SynthConfig) -> dict:
     """Render the capture described by ``cfg``; returns ``{"paths": {...}, "timings": {...}, ...}``."""
-    from plantsplat.synth.generate import generate as _generate
+    from plantsplat.synth.capture import generate as _generate
 
     return _generate(cfg)
 
