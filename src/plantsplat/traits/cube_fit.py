@@ -126,18 +126,26 @@ class CubeFit:
         }
 
 
-def _robust_obb(points: np.ndarray):
+def _robust_obb(points: np.ndarray, max_hull_points: int = 5000):
     """Minimal OBB axes ``[3, 3]`` (rows) and the 1 %..99 % extents of the points along them."""
     import open3d as o3d
 
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    try:
-        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-            obb = pc.get_minimal_oriented_bounding_box(robust=True)
-        R = np.asarray(obb.R).T  # rows = axes
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
-            raise RuntimeError("degenerate box")
-    except RuntimeError:
+    sub = points
+    if len(points) > max_hull_points:  # the box orientation from a subset; extents from all points
+        sub = points[np.random.default_rng(0).choice(len(points), max_hull_points, replace=False)]
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sub))
+    R = None
+    for robust in (False, True):
+        try:
+            with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+                obb = pc.get_minimal_oriented_bounding_box(robust=robust)
+        except RuntimeError:
+            continue
+        Rc = np.asarray(obb.R).T  # rows = axes
+        if np.all(np.asarray(obb.extent) > 0) and np.allclose(Rc @ Rc.T, np.eye(3), atol=1e-6):
+            R = Rc
+            break
+    if R is None:
         # degenerate (flat/collinear) clusters: fall back to PCA axes
         c = points - points.mean(0)
         R = np.linalg.svd(c, full_matrices=False)[2]
@@ -153,6 +161,14 @@ def evaluate_cube_candidate(
     n = len(points)
     if n < min_points:
         return CubeCandidate(label, n, [], 0.0, 0.0, 0, 0.0, False, "too few points")
+    # quick rejection by the PCA extents (any axes of a cube give extents within a factor sqrt(3))
+    c = points - points.mean(0)
+    axes = np.linalg.svd(c[:: max(1, n // 5000)], full_matrices=False)[2]
+    lo, hi = np.quantile(c @ axes.T, [0.01, 0.99], axis=0)
+    pe = hi - lo
+    if pe.min() < pe.max() / 2.5 or (cube_size is not None and not 0.5 * cube_size < pe.max() < 2.2 * cube_size):
+        return CubeCandidate(label, n, sorted(pe.tolist(), reverse=True), float(pe.min() / pe.max()), 0.0, 0, 0.0,
+                             False, "PCA extents are not a cube's")
     R, lo, hi, proj = _robust_obb(points)
     ext = hi - lo
     order = np.argsort(-ext)
@@ -216,7 +232,7 @@ def fit_cube_planes(
     size_hint: float | None = None,
     threshold: float | None = None,
     max_planes: int = 8,
-    iterations: int = 2000,
+    iterations: int = 1000,
     seed: int = 0,
 ) -> CubeFit | None:
     """Fit the cube's face planes and measure its edge. ``points [N, 3]`` are the cube's points.
@@ -229,8 +245,11 @@ def fit_cube_planes(
     pts = np.asarray(points, dtype=np.float64)
     if len(pts) < 60:
         return None
-    R, lo, hi, _ = _robust_obb(pts)
-    size = float(size_hint) if size_hint else float(np.mean(hi - lo))
+    if size_hint:
+        size = float(size_hint)
+    else:
+        _, lo, hi, _ = _robust_obb(pts)
+        size = float(np.mean(hi - lo))
     thr = float(threshold) if threshold else 0.02 * size
     o3d.utility.random.seed(seed)
     remaining = np.arange(len(pts))

@@ -88,8 +88,9 @@ class TraitSettings:
     """Clusters closer than this to the plant join it (separated leaves, fruit on thin stems)."""
     min_cluster_fraction: float = 0.002
     """Clusters smaller than this fraction of the main plant cluster are floaters."""
-    trim: float = 0.01
-    """Robust traits use the trim .. 1-trim quantiles instead of min .. max."""
+    trim: float = 0.0005
+    """Robust height/widths use the trim .. 1-trim quantiles instead of min .. max (0.0005: the ~0.05 % most
+    extreme points on each side are ignored)."""
     cube_size_cm: float = 10.0
     """Edge of the calibration cube (cm)."""
     scale_tolerance_pct: float = 3.0
