@@ -71,6 +71,18 @@ def _accuracy_table(accuracy: Mapping[str, Any] | None) -> Mapping[str, Mapping[
     return table or None
 
 
+def _table_from_truth(rows: Sequence[Mapping[str, Any]], truth: Mapping[str, Mapping[str, float]]):
+    """The accuracy table computed here (plantsplat.traits.stats) when only per-plant truth was given."""
+    try:
+        from plantsplat.traits.stats import accuracy_table
+    except ImportError:
+        return None
+    est = {_plant_id(r, i): {t: _number(r.get(t)) for t in TRAIT_KEYS} for i, r in enumerate(rows)}
+    traits = [t for t in TRAIT_KEYS if any(t in v for v in truth.values())]
+    table = accuracy_table({k: v for k, v in est.items() if k in truth}, dict(truth), traits)
+    return {t: m for t, m in table.items() if m.get("n")} or None
+
+
 def _scatter_html(rows: Sequence[Mapping[str, Any]], truth: Mapping[str, Mapping[str, Any]],
                   table: Mapping[str, Mapping[str, Any]] | None) -> tuple[str, int]:
     """One interactive plotly scatter (estimate vs hand measurement, 1:1 line) per trait with data."""
@@ -142,6 +154,8 @@ def write_batch_report(
             truth_all.setdefault(str(k), {}).update(v)
     for k, v in _truth_from_rows(rows).items():
         truth_all.setdefault(k, {}).update(v)
+    if table is None and truth_all:
+        table = _table_from_truth(rows, truth_all)
 
     # traits table, with a link to each plant's report
     links = {}

@@ -76,42 +76,68 @@ def _decode_png(data: bytes) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def open_report(
-    path: str | os.PathLike,
-    screenshot: str | os.PathLike | None = None,
-    timeout_s: float = 60.0,
-    orbit_frames: int = 0,
-    modes: tuple[str, ...] = (),
-    viewport: tuple[int, int] = (1280, 900),
-    background: tuple[int, int, int] = (0x20, 0x21, 0x24),
-) -> BrowserResult:
-    """Open ``path`` from ``file://`` in headless Chromium and wait for the viewer (if any) to draw.
+class ReportBrowser:
+    """One headless Chromium for several reports (launching takes about a second).
 
-    ``orbit_frames`` > 0 turns the camera a full circle in that many frames and reports the frame rate;
-    ``modes`` (e.g. ``("points", "splat")``) switches the viewer to each mode and measures drawn pixels.
+    Example:
+        >>> with ReportBrowser() as b:  # doctest: +SKIP
+        ...     r1 = b.open("a/report.html")
+        ...     r2 = b.open("b/report.html", screenshot="b.png")
     """
-    from playwright.sync_api import sync_playwright
 
-    exe = find_chromium()
-    if exe is None:
-        raise RuntimeError("chromium not found; install the Debian package `chromium`")
-    url = Path(path).resolve().as_uri()
-    errors: list[str] = []
-    with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=exe, args=CHROMIUM_ARGS, headless=True)
+    def __init__(self, viewport: tuple[int, int] = (1280, 900)):
+        self.viewport = viewport
+        self._pw = None
+        self.browser = None
+
+    def __enter__(self) -> "ReportBrowser":
+        from playwright.sync_api import sync_playwright
+
+        exe = find_chromium()
+        if exe is None:
+            raise RuntimeError("chromium not found; install the Debian package `chromium`")
+        self._pw = sync_playwright().start()
         try:
-            page = browser.new_page(viewport={"width": viewport[0], "height": viewport[1]})
-            page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-            page.on("pageerror", lambda e: errors.append(f"pageerror: {e}"))
-            page.on("requestfailed", lambda r: errors.append(f"requestfailed: {r.url[:120]}"))
+            self.browser = self._pw.chromium.launch(executable_path=exe, args=CHROMIUM_ARGS, headless=True)
+        except BaseException:
+            self._pw.stop()
+            raise
+        return self
+
+    def __exit__(self, *exc) -> None:
+        try:
+            if self.browser is not None:
+                self.browser.close()
+        finally:
+            self._pw.stop()
+
+    def new_page(self, errors: list[str]):
+        """A fresh page that appends console errors, page errors and failed requests to ``errors``."""
+        page = self.browser.new_page(viewport={"width": self.viewport[0], "height": self.viewport[1]})
+        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+        page.on("pageerror", lambda e: errors.append(f"pageerror: {e}"))
+        page.on("requestfailed", lambda r: errors.append(f"requestfailed: {r.url[:120]}"))
+        return page
+
+    def open(
+        self,
+        path: str | os.PathLike,
+        screenshot: str | os.PathLike | None = None,
+        timeout_s: float = 60.0,
+        orbit_frames: int = 0,
+        modes: tuple[str, ...] = (),
+        background: tuple[int, int, int] = (0x20, 0x21, 0x24),
+        keep_page: bool = False,
+    ) -> BrowserResult:
+        """Open ``path`` from ``file://`` and wait for the viewer (if any) to draw; see :func:`open_report`."""
+        errors: list[str] = []
+        page = self.new_page(errors)
+        try:
             t0 = time.perf_counter()
-            page.goto(url, wait_until="load", timeout=timeout_s * 1000)
+            page.goto(Path(path).resolve().as_uri(), wait_until="load", timeout=timeout_s * 1000)
             load_s = page.evaluate("performance.getEntriesByType('navigation')[0].loadEventEnd / 1000")
             has_viewer = page.evaluate("!!window.plantsplatViewer && !!document.getElementById('viewer-canvas')")
-            state = err = first = None
-            frac = None
-            orbit = None
-            canvas_img = None
+            state = err = first = frac = orbit = canvas_img = None
             mode_fracs: dict[str, float] = {}
             if has_viewer:
                 deadline = t0 + timeout_s
@@ -129,7 +155,7 @@ def open_report(
                 frac = _drawn_fraction(canvas_img, background)
                 for mode in modes:
                     page.evaluate(f"window.plantsplatViewer.setMode({mode!r})")
-                    page.wait_for_timeout(300)
+                    page.evaluate("window.plantsplatViewer.rendered()")
                     mode_fracs[mode] = _drawn_fraction(_decode_png(canvas.screenshot()), background)
                 if orbit_frames > 0 and state == "ready":
                     orbit = page.evaluate(f"window.plantsplatViewer.orbit({int(orbit_frames)})")
@@ -139,7 +165,22 @@ def open_report(
                 shot.parent.mkdir(parents=True, exist_ok=True)
                 page.screenshot(path=str(shot), full_page=True)
         finally:
-            browser.close()
-    return BrowserResult(load_s=load_s, viewer_state=state, viewer_error=err, first_content_s=first,
-                         canvas_fraction=frac, console_errors=errors, orbit=orbit, mode_fractions=mode_fracs,
-                         screenshot=shot, canvas_image=canvas_img)
+            if not keep_page:
+                page.close()
+        res = BrowserResult(load_s=load_s, viewer_state=state, viewer_error=err, first_content_s=first,
+                            canvas_fraction=frac, console_errors=errors, orbit=orbit, mode_fractions=mode_fracs,
+                            screenshot=shot, canvas_image=canvas_img)
+        if keep_page:
+            res.page = page  # type: ignore[attr-defined]
+        return res
+
+
+def open_report(path: str | os.PathLike, screenshot: str | os.PathLike | None = None, timeout_s: float = 60.0,
+                orbit_frames: int = 0, modes: tuple[str, ...] = (), viewport: tuple[int, int] = (1280, 900)) -> BrowserResult:
+    """Open ``path`` from ``file://`` in a new headless Chromium and wait for the viewer (if any) to draw.
+
+    ``orbit_frames`` > 0 turns the camera a full circle in that many frames and reports the frame rate;
+    ``modes`` (e.g. ``("points", "splat")``) switches the viewer to each mode and measures drawn pixels.
+    """
+    with ReportBrowser(viewport) as b:
+        return b.open(path, screenshot=screenshot, timeout_s=timeout_s, orbit_frames=orbit_frames, modes=modes)

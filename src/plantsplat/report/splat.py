@@ -57,12 +57,12 @@ class SplatArrays:
 
 
 def _vertex_table(path: Path):
-    from plyfile import PlyData
+    from plyfile import PlyData, PlyParseError
 
     try:
         ply = PlyData.read(str(path))
         return ply["vertex"].data
-    except (KeyError, ValueError, OSError, IndexError, TypeError) as exc:
+    except (PlyParseError, KeyError, ValueError, OSError, IndexError, TypeError, EOFError) as exc:
         raise PlantsplatError(
             f"{path}: not a readable PLY with a 'vertex' element ({type(exc).__name__}); re-run the stage that wrote it"
         ) from exc

@@ -5,7 +5,9 @@
 //   #points-xyz   float32 little-endian [N, 3];  #points-rgb   uint8 [N, 3]
 // and #viewer-config (JSON): {center: [3], radius, background, splat: bool, points: bool, mode}.
 // window.plantsplatViewer exposes state for tests and benchmarks: state ('loading' | 'ready' | 'error'),
-// error, firstContentMs, setMode(mode), orbit(frames) -> Promise<{fps, msPerFrame, frames}>.
+// error, firstContentMs (first frame with the model drawn, ms since navigation start), setMode(mode),
+// rendered() -> Promise (next frame presented), setAdaptive(bool) (dynamic resolution while moving),
+// orbit(frames) -> Promise<{fps, msPerFrame, frames, pixelRatio, fullPixelRatio}>.
 (function () {
   "use strict";
 
@@ -61,7 +63,7 @@
     var camera = new THREE.PerspectiveCamera(45, 1, radius * 0.01, radius * 200);
     camera.up.set(0, 0, 1);  // world frame: z up (centimetres)
     function homeView() {
-      var az = -Math.PI / 2.6, el = Math.PI / 7, dist = radius * 2.6;
+      var az = -Math.PI / 2.6, el = Math.PI / 7, dist = radius * 2.1;
       camera.position.set(center.x + dist * Math.cos(el) * Math.cos(az),
                           center.y + dist * Math.cos(el) * Math.sin(az),
                           center.z + dist * Math.sin(el));
@@ -78,8 +80,20 @@
     grid.rotation.x = Math.PI / 2;
     scene.add(grid);
 
-    var needsRender = true, autoRotate = false, splat = null, points = null, spark = null;
+    var needsRender = true, autoRotate = false, interacting = false, splat = null, points = null, spark = null;
+    var orbitJob = null, renderWaiters = [];
     function requestRender() { needsRender = true; }
+
+    // Dynamic resolution: while the view moves, drop the pixel ratio when frames take longer than
+    // ~45 ms (software WebGL, weak GPUs), raise it back when they are fast; full resolution when still.
+    var fullRatio = Math.min(window.devicePixelRatio || 1, 2), ratio = fullRatio, minRatio = fullRatio * 0.35;
+    var lastFrameT = null, frameEma = null, lastMoveT = 0, adaptive = cfg.adaptive_resolution !== false;
+    api.pixelRatio = function () { return ratio; };
+    function setRatio(r) {
+      if (Math.abs(r - ratio) < 1e-3) return;
+      ratio = r;
+      renderer.setPixelRatio(ratio);
+    }
 
     function resize() {
       var w = canvas.clientWidth || 800, h = canvas.clientHeight || 500;
@@ -89,9 +103,10 @@
       requestRender();
     }
     window.addEventListener("resize", resize);
+    renderer.setPixelRatio(ratio);
     resize();
 
-    // first frame that shows anything but the background (grid lines are thin and excluded by size)
+    // share of sampled pixels that differ from the background (used once, to time the first drawn frame)
     var probe = null;
     function checkContent() {
       var gl = renderer.getContext();
@@ -105,25 +120,51 @@
       return n / (probe.length / 16);
     }
 
-    function frame() {
-      if (autoRotate) {
-        var off = camera.position.clone().sub(controls.target);
-        off.applyAxisAngle(new THREE.Vector3(0, 0, 1), 0.01);
-        camera.position.copy(controls.target).add(off);
-        camera.lookAt(controls.target);
-        needsRender = true;
+    var zAxis = new THREE.Vector3(0, 0, 1);
+    function turn(angle) {
+      var off = camera.position.clone().sub(controls.target);
+      off.applyAxisAngle(zAxis, angle);
+      camera.position.copy(controls.target).add(off);
+      camera.lookAt(controls.target);
+    }
+
+    function frame(now) {
+      var moving = autoRotate || interacting || orbitJob !== null;
+      if (autoRotate) turn(0.01);
+      if (orbitJob) {
+        if (orbitJob.t0 === null) orbitJob.t0 = now;
+        else turn((2 * Math.PI) / orbitJob.frames);
       }
+      if (moving) { needsRender = true; lastMoveT = now; }
+      if (adaptive && lastFrameT !== null && moving) {
+        var dt = now - lastFrameT;
+        frameEma = frameEma === null ? dt : 0.7 * frameEma + 0.3 * dt;
+        if (frameEma > 45 && ratio > minRatio) setRatio(Math.max(minRatio, ratio * 0.75));
+        else if (frameEma < 22 && ratio < fullRatio) setRatio(Math.min(fullRatio, ratio / 0.85));
+      }
+      if (!moving && ratio !== fullRatio && now - lastMoveT > 250) { setRatio(fullRatio); frameEma = null; needsRender = true; }
+      lastFrameT = moving ? now : null;
       if (needsRender) {
         needsRender = false;
         renderer.render(scene, camera);
         if (api.state === "ready" && api.firstContentMs === null && checkContent() > 0.002) {
           api.firstContentMs = performance.now();
         }
+        var waiters = renderWaiters;
+        renderWaiters = [];
+        for (var i = 0; i < waiters.length; i++) requestAnimationFrame(waiters[i]);
+      }
+      if (orbitJob && orbitJob.t0 !== null && ++orbitJob.done >= orbitJob.frames) {
+        var job = orbitJob, ms = (performance.now() - job.t0) / job.frames;
+        orbitJob = null;
+        job.resolve({ frames: job.frames, msPerFrame: ms, fps: 1000 / ms, pixelRatio: ratio, fullPixelRatio: fullRatio });
       }
       requestAnimationFrame(frame);
     }
 
     controls.addEventListener("change", requestRender);
+    controls.addEventListener("start", function () { interacting = true; });
+    controls.addEventListener("end", function () { interacting = false; });
     api.three = { renderer: renderer, scene: scene, camera: camera, controls: controls };
 
     function setMode(mode) {
@@ -139,24 +180,13 @@
     api.setMode = setMode;
     api.home = function () { homeView(); controls.target.copy(center); controls.update(); requestRender(); };
     api.setAutoRotate = function (on) { autoRotate = !!on; requestRender(); };
+    api.setAdaptive = function (on) { adaptive = !!on; if (!adaptive) setRatio(fullRatio); };
+    // resolves once the next frame has been rendered and presented
+    api.rendered = function () { return new Promise(function (res) { renderWaiters.push(res); requestRender(); }); };
+    // turn the camera a full circle in `frames` displayed frames; resolves with the frame rate
     api.orbit = function (frames) {
-      // rotate the camera a full turn in `frames` rendered frames; resolves with the frame rate
-      frames = frames || 60;
       return new Promise(function (resolve) {
-        var k = 0, t0 = performance.now(), axis = new THREE.Vector3(0, 0, 1);
-        function step() {
-          var off = camera.position.clone().sub(controls.target);
-          off.applyAxisAngle(axis, (2 * Math.PI) / frames);
-          camera.position.copy(controls.target).add(off);
-          camera.lookAt(controls.target);
-          renderer.render(scene, camera);
-          renderer.getContext().finish();
-          k++;
-          if (k < frames) { requestAnimationFrame(step); return; }
-          var ms = (performance.now() - t0) / frames;
-          resolve({ frames: frames, msPerFrame: ms, fps: 1000 / ms });
-        }
-        requestAnimationFrame(step);
+        orbitJob = { frames: frames || 60, done: 0, t0: null, resolve: resolve };
       });
     };
 
@@ -182,7 +212,10 @@
       scene.add(points);
     }
     if (cfg.splat) {
-      spark = new L.SparkRenderer({ renderer: renderer, onDirty: requestRender });
+      var sparkOptions = { renderer: renderer, onDirty: requestRender };
+      var extra = cfg.spark_options || {};
+      for (var key in extra) sparkOptions[key] = extra[key];
+      spark = new L.SparkRenderer(sparkOptions);
       scene.add(spark);
       splat = new L.SplatMesh({ fileBytes: dataBlock("splat-data"), fileType: "splat" });
       scene.add(splat);
