@@ -10,6 +10,8 @@ if [[ "${1:-}" == "--dev" ]]; then EXTRAS="all,dev"; fi
 
 # Debian packages: EGL/Mesa for the headless renderer (moderngl), libusb for Open3D's import.
 APT_PKGS=(libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libusb-1.0-0 libgomp1)
+# --dev: Chromium for the report's browser tests (driven by Playwright, no browser download).
+if [[ "$EXTRAS" == *dev* ]]; then APT_PKGS+=(chromium); fi
 missing=()
 for p in "${APT_PKGS[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

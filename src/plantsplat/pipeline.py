@@ -205,21 +205,15 @@ def _stage_segment(ws: Workspace, source: Path | None, opts: RunOptions) -> dict
 
 
 def _stage_poses(ws: Workspace, source: Path | None, opts: RunOptions) -> dict:
-    from plantsplat.poses import PosesOptions, estimate_poses
+    from plantsplat.poses import PosesConfig, estimate_poses
 
-    popts = PosesOptions()
-    if opts.matcher != "auto":
-        popts.matcher = opts.matcher
-    return estimate_poses(ws, popts)
+    return estimate_poses(ws, PosesConfig(matcher=opts.matcher))
 
 
 def _stage_train(ws: Workspace, source: Path | None, opts: RunOptions) -> dict:
-    from plantsplat.train import TrainOptions, train_workspace
+    from plantsplat.train import TrainConfig, train_workspace
 
-    topts = TrainOptions(mode=opts.mode, backend=opts.backend, seed=opts.seed)
-    if opts.iterations is not None:
-        topts.iterations = opts.iterations
-    return train_workspace(ws, topts)
+    return train_workspace(ws, TrainConfig(mode=opts.mode, backend=opts.backend, seed=opts.seed, iterations=opts.iterations))
 
 
 def _stage_export(ws: Workspace, source: Path | None, opts: RunOptions) -> dict:
