@@ -39,6 +39,54 @@ _T_EPS = _F32(1e-4)
 # fast-math without the no-NaN/no-Inf assumptions (inputs are validated, but be safe)
 _FM = {"reassoc", "contract", "arcp", "nsz", "afn"}
 _NGRAD = 10  # per-intersection gradient: mean x, mean y, conic a, b, c, opacity, r, g, b, depth
+_LANES = 8  # tile_size must be a multiple of this (so tile_size^2 is a multiple of _BLOCK)
+_BLOCK = 32  # pixel loops run over multiples of this many pixels (vector width x unroll)
+_SIG_MAX = _F32(6.0)  # exp(-6) < 1/255: larger sigma can never give a visible alpha
+_LOG2E = _F32(1.4426950408889634)
+_LN2_HI = _F32(0.693145751953125)
+_LN2_LO = _F32(1.428606765330187e-06)
+_EIGHT = _F32(8.0)
+_FOUR = _F32(4.0)
+_TWO = _F32(2.0)
+
+
+@njit(inline="always", fastmath=_FM, cache=True)
+def _exp_neg(s):  # pragma: no cover - numba
+    """exp(-s) for s clamped to [0, 6], in float32 arithmetic the compiler can vectorise.
+
+    libm's expf is a scalar call that stops the pixel loop from vectorising, so this is the usual
+    range reduction exp(-s) = 2^-n exp(n ln2 - s) with a degree-6 polynomial on [-0.35, 0.35] and
+    2^-n (n <= 9) from selects. Max relative error 2.5e-7 on [0, 6] (float32 expf: 2.0e-7).
+    """
+    s = min(max(s, _ZERO), _SIG_MAX)
+    n = np.float32(np.int32(s * _LOG2E + _HALF))  # round(s / ln2); int32 keeps it vectorisable
+    r = (n * _LN2_HI - s) + n * _LN2_LO
+    p = _F32(1.0 / 720.0)
+    p = p * r + _F32(1.0 / 120.0)
+    p = p * r + _F32(1.0 / 24.0)
+    p = p * r + _F32(1.0 / 6.0)
+    p = p * r + _HALF
+    p = p * r + _ONE
+    p = p * r + _ONE
+    p = p * (_F32(1.0 / 256.0) if n >= _EIGHT else _ONE)
+    n = n - (_EIGHT if n >= _EIGHT else _ZERO)
+    p = p * (_F32(1.0 / 16.0) if n >= _FOUR else _ONE)
+    n = n - (_FOUR if n >= _FOUR else _ZERO)
+    p = p * (_F32(0.25) if n >= _TWO else _ONE)
+    n = n - (_TWO if n >= _TWO else _ZERO)
+    return p * (_HALF if n >= _ONE else _ONE)
+
+
+@njit(inline="always", cache=True)
+def _span(m, r, origin, ts):  # pragma: no cover - numba
+    """Tile-local pixel range [lo, hi) whose centres lie within r + 1 of m along one axis.
+
+    Beyond the screen radius r (>= extent * sqrt(cov_ii), with extent = sqrt(2 ln(255 opacity)))
+    the Mahalanobis distance alone makes alpha < 1/255, so those pixels can be skipped exactly.
+    """
+    lo = min(max(math.ceil(m - _F32(r) - _F32(1.5)) - origin, 0.0), ts)
+    hi = min(max(math.floor(m + _F32(r) + _HALF) - origin + 1.0, 0.0), ts)
+    return int(lo), int(hi)
 
 
 @njit(cache=True)
@@ -99,12 +147,14 @@ def _tile_schedule(offsets: np.ndarray) -> np.ndarray:
 
 
 @njit(parallel=True, fastmath=_FM, cache=True)
-def _forward(means2d, conics, colors, opac, depths, offsets, ids, tiles, n_workers, tile_size, tiles_x,
-             width, height, out_rgb, out_alpha, out_depth, out_T, out_last):  # pragma: no cover - numba
-    """Composite every listed tile; writes colour, alpha, sum z*w and (if out_T.size) T and counts."""
+def _forward(means2d, conics, colors, opac, depths, radii, offsets, ids, tiles, n_workers, tile_size, tiles_x,
+             width, height, out_rgb, out_alpha, out_depth, out_T, out_last, out_n):  # pragma: no cover - numba
+    """Composite every listed tile: colour, alpha, sum z*w; if out_T.size, final T and list position of
+    the last composited Gaussian; if out_n.size, the number of Gaussians composited per pixel."""
     ts = tile_size
     npix = ts * ts
     save = out_T.shape[0] > 0
+    count = out_n.shape[0] > 0
     n_sched = tiles.shape[0]
     for w in prange(n_workers):
         px = np.empty(npix, np.float32)
@@ -115,7 +165,8 @@ def _forward(means2d, conics, colors, opac, depths, offsets, ids, tiles, n_worke
         ab = np.empty(npix, np.float32)
         ad = np.empty(npix, np.float32)
         act = np.empty(npix, np.float32)  # 1 while the pixel is still compositing, else 0
-        last = np.empty(npix, np.int32)
+        last = np.empty(npix, np.float32)  # list position (1-based) of the last composited Gaussian
+        ncon = np.empty(npix, np.float32)
         for k in range(w, n_sched, n_workers):
             t = tiles[k]
             tyi = t // tiles_x
@@ -135,7 +186,8 @@ def _forward(means2d, conics, colors, opac, depths, offsets, ids, tiles, n_worke
                 ag[p] = _ZERO
                 ab[p] = _ZERO
                 ad[p] = _ZERO
-                last[p] = 0
+                last[p] = _ZERO
+                ncon[p] = _ZERO
                 inside = (x_0 + ix < width) and (y_0 + iy < height)
                 act[p] = _ONE if inside else _ZERO
                 n_act += 1 if inside else 0
@@ -153,28 +205,38 @@ def _forward(means2d, conics, colors, opac, depths, offsets, ids, tiles, n_worke
                 cg = colors[g, 1]
                 cbl = colors[g, 2]
                 z = depths[g]
-                jl = np.int32(j - start + 1)
-                n_act = 0
-                for p in range(npix):
+                jl = _F32(j - start + 1)
+                r0, r1 = _span(my, radii[g, 1], y_0, ts)
+                lo = (r0 * ts) // _BLOCK * _BLOCK
+                hi = min(npix, (r1 * ts + _BLOCK - 1) // _BLOCK * _BLOCK) if r1 > r0 else lo
+                ulo = np.uint64(lo)
+                n_stop = _ZERO  # float32 counter keeps the loop in 8-wide float vectors
+                # whole rows r0..r1 (rounded out to _BLOCK pixels so the vector loop has no scalar
+                # tail); unsigned indices: numba's negative-index wraparound stops vectorisation
+                for q in range(hi - lo):
+                    p = ulo + np.uint64(q)
                     dx = mx - px[p]
                     dy = my - py[p]
                     sig = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                    al = min(_ALPHA_MAX, o * math.exp(-max(sig, _ZERO)))
-                    ok = (act[p] > _ZERO) and (sig >= _ZERO) and (al >= _ALPHA_MIN)
+                    al = min(_ALPHA_MAX, o * _exp_neg(sig))
+                    ok = (act[p] > _ZERO) & (sig >= _ZERO) & (al >= _ALPHA_MIN)
                     Tp = T[p]
                     nT = Tp * (_ONE - al)
-                    stop = ok and (nT <= _T_EPS)
-                    use = ok and not stop
+                    stop = ok & (nT <= _T_EPS)
+                    use = ok & (nT > _T_EPS)
                     wt = al * Tp if use else _ZERO
                     ar[p] += wt * cr
                     ag[p] += wt * cg
                     ab[p] += wt * cbl
                     ad[p] += wt * z
-                    T[p] = nT if use else Tp
-                    last[p] = jl if use else last[p]
-                    a_new = _ZERO if stop else act[p]
-                    act[p] = a_new
-                    n_act += 1 if a_new > _ZERO else 0
+                    # unconditional stores of selected values: conditional ones become masked
+                    # stores, which are very slow on some x86 cores
+                    T[p] = Tp * ((_ONE - al) if use else _ONE)
+                    last[p] = max(last[p], jl if use else _ZERO)
+                    ncon[p] += _ONE if use else _ZERO
+                    act[p] = act[p] * (_ZERO if stop else _ONE)
+                    n_stop += _ONE if stop else _ZERO
+                n_act -= int(n_stop)
             for p in range(npix):
                 iy = p // ts
                 ix = p - iy * ts
@@ -188,11 +250,13 @@ def _forward(means2d, conics, colors, opac, depths, offsets, ids, tiles, n_worke
                     out_depth[yy, xx] = ad[p]
                     if save:
                         out_T[yy, xx] = T[p]
-                        out_last[yy, xx] = last[p]
+                        out_last[yy, xx] = np.int32(last[p])
+                    if count:
+                        out_n[yy, xx] = np.int32(ncon[p])
 
 
 @njit(parallel=True, fastmath=_FM, cache=True)
-def _backward(means2d, conics, colors, opac, depths, offsets, ids, tiles, n_workers, tile_size, tiles_x,
+def _backward(means2d, conics, colors, opac, depths, radii, offsets, ids, tiles, n_workers, tile_size, tiles_x,
               width, height, T_final, n_last, g_rgb, g_alpha, g_depth, out_grad):  # pragma: no cover
     """Back-to-front pass; writes d loss / d (2D Gaussian parameters) per intersection into out_grad."""
     ts = tile_size
@@ -208,7 +272,7 @@ def _backward(means2d, conics, colors, opac, depths, offsets, ids, tiles, n_work
         gg = np.empty(npix, np.float32)
         gb = np.empty(npix, np.float32)
         gd = np.empty(npix, np.float32)
-        lastp = np.empty(npix, np.int32)
+        lastp = np.empty(npix, np.float32)
         for k in range(w, n_sched, n_workers):
             t = tiles[k]
             tyi = t // tiles_x
@@ -227,7 +291,7 @@ def _backward(means2d, conics, colors, opac, depths, offsets, ids, tiles, n_work
                 Q[p] = _ZERO
                 if xx < width and yy < height:
                     T[p] = T_final[yy, xx]
-                    lastp[p] = n_last[yy, xx]
+                    lastp[p] = _F32(n_last[yy, xx])
                     gat[p] = g_alpha[yy, xx] * T_final[yy, xx]
                     gr[p] = g_rgb[yy, xx, 0]
                     gg[p] = g_rgb[yy, xx, 1]
@@ -236,14 +300,15 @@ def _backward(means2d, conics, colors, opac, depths, offsets, ids, tiles, n_work
                     max_last = max(max_last, n_last[yy, xx])
                 else:
                     T[p] = _ONE
-                    lastp[p] = 0
+                    lastp[p] = _ZERO
                     gat[p] = _ZERO
                     gr[p] = _ZERO
                     gg[p] = _ZERO
                     gb[p] = _ZERO
                     gd[p] = _ZERO
-            for jl in range(max_last - 1, -1, -1):
-                j = start + jl
+            for jl64 in range(max_last - 1, -1, -1):
+                j = start + jl64
+                jl = _F32(jl64)
                 g = ids[j]
                 mx = means2d[g, 0]
                 my = means2d[g, 1]
@@ -265,20 +330,28 @@ def _backward(means2d, conics, colors, opac, depths, offsets, ids, tiles, n_work
                 s_g = _ZERO
                 s_b = _ZERO
                 s_z = _ZERO
-                for p in range(npix):
+                r0, r1 = _span(my, radii[g, 1], y_0, ts)
+                lo = (r0 * ts) // _BLOCK * _BLOCK
+                hi = min(npix, (r1 * ts + _BLOCK - 1) // _BLOCK * _BLOCK) if r1 > r0 else lo
+                ulo = np.uint64(lo)
+                # whole rows r0..r1 (rounded out to _BLOCK pixels so the vector loop has no scalar
+                # tail); unsigned indices: numba's negative-index wraparound stops vectorisation
+                for q in range(hi - lo):
+                    p = ulo + np.uint64(q)
                     dx = mx - px[p]
                     dy = my - py[p]
                     sig = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                    e = math.exp(-max(sig, _ZERO))
+                    e = _exp_neg(sig)
                     v = o * e
                     al = min(_ALPHA_MAX, v)
-                    ok = (jl < lastp[p]) and (sig >= _ZERO) and (al >= _ALPHA_MIN)
-                    om = _ONE - al
-                    Ti = T[p] / om
+                    ok = (jl < lastp[p]) & (sig >= _ZERO) & (al >= _ALPHA_MIN)
+                    inv = _ONE / (_ONE - al)
+                    Tp = T[p]
+                    Ti = Tp * inv
                     wt = al * Ti if ok else _ZERO
                     q = gr[p] * cr + gg[p] * cg + gb[p] * cbl + gd[p] * z
-                    dlda = Ti * q - (Q[p] - gat[p]) / om
-                    dlda = dlda if (ok and v <= _ALPHA_MAX) else _ZERO
+                    dlda = Ti * q - (Q[p] - gat[p]) * inv
+                    dlda = dlda if (ok & (v <= _ALPHA_MAX)) else _ZERO
                     dls = -v * dlda  # d loss / d sigma
                     s_r += wt * gr[p]
                     s_g += wt * gg[p]
@@ -291,7 +364,7 @@ def _backward(means2d, conics, colors, opac, depths, offsets, ids, tiles, n_work
                     s_cb += dls * dx * dy
                     s_cc += dls * _HALF * dy * dy
                     Q[p] += q * wt
-                    T[p] = Ti if ok else T[p]
+                    T[p] = Tp * (inv if ok else _ONE)
                 out_grad[j, 0] = s_mx
                 out_grad[j, 1] = s_my
                 out_grad[j, 2] = s_ca
@@ -331,11 +404,11 @@ def _prepare(means2d, conics, colors, opacities, depths, radii, width, height, t
     z = _np32(depths)  # [N]
     offsets, ids = _bin(m2, r2, z, tile_size, tiles_x, tiles_y)
     tiles = _tile_schedule(offsets)
-    arrays = (m2, _np32(conics), _np32(colors), _np32(opacities), z)
+    arrays = (m2, _np32(conics), _np32(colors), _np32(opacities), z, r2)
     return arrays, offsets, ids, tiles, tiles_x
 
 
-def _render(arrays, offsets, ids, tiles, tiles_x, width, height, tile_size, save: bool):
+def _render(arrays, offsets, ids, tiles, tiles_x, width, height, tile_size, save: bool, count: bool = False):
     rgb = np.zeros((height, width, 3), np.float32)
     alpha = np.zeros((height, width), np.float32)
     dsum = np.zeros((height, width), np.float32)
@@ -345,9 +418,12 @@ def _render(arrays, offsets, ids, tiles, tiles_x, width, height, tile_size, save
     else:
         T = np.empty((0, 0), np.float32)
         last = np.empty((0, 0), np.int32)
+    n_con = np.zeros((height, width) if count else (0, 0), np.int32)
     if tiles.size:
         _forward(*arrays, offsets, ids, tiles, _n_workers(), tile_size, tiles_x, width, height,
-                 rgb, alpha, dsum, T, last)
+                 rgb, alpha, dsum, T, last, n_con)
+    if count:
+        return rgb, alpha, dsum, T, last, n_con
     return rgb, alpha, dsum, T, last
 
 
@@ -400,6 +476,10 @@ def composite_cpu(
         >>> round(float(a[3, 3, 0]), 4)
         0.5
     """
+    if tile_size % _LANES:
+        from . import RasterInputError
+
+        raise RasterInputError(f"rasterize: the cpu backend needs tile_size to be a multiple of {_LANES}, got {tile_size}")
     inputs = (means2d, conics, colors, opacities, depths)
     if torch.is_grad_enabled() and any(t.requires_grad for t in inputs):
         return _CompositeCPU.apply(means2d, conics, colors, opacities, depths, radii, width, height, tile_size)
