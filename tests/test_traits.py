@@ -303,3 +303,24 @@ def test_traits_command_bad_input_one_line_error(tmp_path, capsys):
     (ws / "export" / "points.ply").write_bytes(b"ply\ngarbage")
     assert main(["traits", str(ws)]) == 1
     assert "not a readable PLY" in capsys.readouterr().err
+
+
+def test_extent_sampling_from_splat_ply(tmp_path):
+    """--extent-sigma: Gaussians' axis ends count. Each plant point becomes a flat Gaussian whose
+    largest axis is along z with sigma 0.5 cm, so the height grows by 2 * k_sigma * 0.5 cm."""
+    from plantsplat.cli import main
+    from plantsplat.train.export import write_splat_ply
+
+    pts, cols, plant = make_plant_scene(seed=10, floaters=False)
+    n = len(pts)
+    sig = np.where(plant[:, None], [[0.01, 0.01, 0.5]], [[0.01, 0.01, 0.01]])  # [N, 3]
+    sh0 = ((cols / 255.0) - 0.5) / 0.28209479177387814
+    ws = tmp_path / "ws"
+    write_splat_ply(ws / "export" / "splat.ply", pts, np.log(sig), np.tile([1.0, 0, 0, 0], (n, 1)),
+                    np.full(n, 4.0), sh0[:, None, :], np.zeros((n, 0, 3)))
+    (ws / "poses.json").write_text(json.dumps({"scale_source": "aruco"}))
+    assert main(["traits", str(ws), "--extent-sigma", "2", "--no-figure"]) == 0
+    out = json.loads((ws / "traits.json").read_text())
+    h0 = traitdefs.plant_height(pts[plant])
+    assert out["height_cm"] == pytest.approx(h0 + 2.0, rel=0.01)
+    assert out["fruit_count"] == 3  # colours from the SH DC term

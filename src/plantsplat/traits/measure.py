@@ -109,6 +109,9 @@ class TraitSettings:
     """Minimum points of one fruit."""
     fruit_min_size_cm: float = 0.8
     """Minimum extent of one fruit (cm)."""
+    extent_sigma: float = 0.0
+    """0: measure the Gaussians' centres (the paper). > 0: also use the 6 ends of each Gaussian's principal
+    axes at this many standard deviations (read from export/splat.ply), so that the Gaussians' extents count."""
     seed: int = 0
     """Random seed (subsampling, RANSAC)."""
 
@@ -157,6 +160,10 @@ class TraitResult:
                 "scale": self.scale,
                 "cube": self.cube,
                 "clusters": self.clusters,
+                "fruit_count_definition": "ripe (red) fruit: clusters of plant points whose colour is within "
+                f"{self.settings.get('fruit_hue_deg')} deg of red hue, saturation >= "
+                f"{self.settings.get('fruit_min_saturation')}, value >= {self.settings.get('fruit_min_value')}; "
+                "unripe (white/green) fruit are not counted",
                 "fruit_centres_cm": None if self.fruit_centres is None else np.round(self.fruit_centres, 3).tolist(),
                 "transform_to_cm": None if self.transform is None else self.transform.tolist(),
                 "settings": self.settings,
@@ -227,6 +234,7 @@ def measure_traits(
     camera_centres: np.ndarray | None = None,
     settings: TraitSettings | None = None,
     cube: CubeSpec | None = None,
+    centre_mask: np.ndarray | None = None,
 ) -> TraitResult:
     """Measure plant traits from a point cloud of a plant and the calibration cube.
 
@@ -240,6 +248,8 @@ def measure_traits(
         camera_centres: ``[M, 3]`` camera positions in the same frame (helps find "up" when uncalibrated).
         settings: :class:`TraitSettings`.
         cube: the cube's geometry (only ``size`` is used); defaults to :class:`CubeSpec` ().
+        centre_mask: ``[N]`` bool, True for Gaussian centres when the other points are extent samples
+            (:func:`gaussian_extent_points`); fruit are counted on centres only. None: all points.
 
     Returns:
         A :class:`TraitResult`; ``quality`` is 'failed' (and every trait None) when the traits cannot
@@ -277,6 +287,7 @@ def measure_traits(
         keep &= np.asarray(scales).reshape(len(pts), -1).max(1) <= s.max_scale_cm
     pts = pts[keep]
     cols = None if cols is None else cols[keep].astype(np.uint8)
+    is_centre = np.ones(len(pts), bool) if centre_mask is None else np.asarray(centre_mask, bool)[keep]
     filt = {"input_points": n_in, "non_finite": n_nonfinite, "kept_points": int(len(pts))}
     if len(pts) < 100:
         return _failed(
@@ -400,6 +411,7 @@ def measure_traits(
                           "excluded": sel.excluded[:20], "plant_points": int(plant_mask.sum())})
     P = pts_cm[plant_mask]  # [M, 3]
     C = None if cols is None else cols[plant_mask]
+    P_centres = pts_cm[plant_mask & is_centre]
     if len(P) < 50:
         return _failed(f"the plant has only {len(P)} points: the reconstruction is too sparse to measure",
                        s, scale=scale, cube=cube_json, clusters=clusters_info)
@@ -412,7 +424,7 @@ def measure_traits(
     robust = {k: rob[k] for k in ROBUST_KEYS}
     fruit_centres = None
     if C is not None:
-        traits["fruit_count"], fruit_centres = count_fruit(P, C, s)
+        traits["fruit_count"], fruit_centres = count_fruit(P_centres, cols[plant_mask & is_centre], s)
     else:
         traits["fruit_count"] = None
         reasons.append("no colours in the cloud: fruit not counted")
@@ -426,6 +438,48 @@ def measure_traits(
         clusters=clusters_info, settings=asdict(s), plant_points=P, plant_colors=C, cube_points=cube_pts,
         fruit_centres=fruit_centres, transform=T, timings=timings,
     )
+
+
+def gaussian_extent_points(
+    means: np.ndarray, scales: np.ndarray, quats: np.ndarray, k_sigma: float
+) -> np.ndarray:
+    """The centres and the 6 ends of each Gaussian's principal axes at ``k_sigma`` standard deviations.
+
+    ``means [N, 3]``, ``scales [N, 3]`` (activated standard deviations), ``quats [N, 4]`` (w, x, y, z).
+    Returns ``[7 N, 3]``: the N centres first, then the 6 N axis ends.
+
+    Example:
+        >>> p = gaussian_extent_points(np.zeros((1, 3)), np.array([[1.0, 2, 3]]), np.array([[1.0, 0, 0, 0]]), 2.0)
+        >>> float(p[:, 2].max()), float(p[:, 1].min())
+        (6.0, -4.0)
+    """
+    from scipy.spatial.transform import Rotation
+
+    q = np.asarray(quats, dtype=np.float64)
+    q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
+    R = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()  # [N, 3, 3], columns = principal axes
+    ax = R * (k_sigma * np.asarray(scales, dtype=np.float64))[:, None, :]  # [N, 3, 3] scaled columns
+    ends = np.concatenate([means[:, None, :] + ax.transpose(0, 2, 1), means[:, None, :] - ax.transpose(0, 2, 1)], 1)
+    return np.concatenate([np.asarray(means, np.float64), ends.reshape(-1, 3)])
+
+
+def read_splat_extent_cloud(path: str | Path, opacity_min: float, k_sigma: float) -> dict[str, np.ndarray]:
+    """Point cloud of the opaque Gaussians of an Inria-layout ``splat.ply`` with their extents
+    (see :func:`gaussian_extent_points`); colours from the SH DC term."""
+    from plantsplat.train.export import read_splat_ply
+
+    g = read_splat_ply(path)
+    op = 1.0 / (1.0 + np.exp(-np.asarray(g["opacities"], np.float64)))  # [N]
+    keep = op >= opacity_min
+    means = np.asarray(g["means"], np.float64)[keep]
+    scales = np.exp(np.asarray(g["scales"], np.float64)[keep])
+    pts = gaussian_extent_points(means, scales, np.asarray(g["quats"])[keep], k_sigma)
+    rgb = np.clip(0.5 + 0.28209479177387814 * np.asarray(g["sh0"], np.float64)[keep, 0, :], 0, 1)
+    rgb = np.round(rgb * 255).astype(np.uint8)
+    centre = np.zeros(len(pts), bool)
+    centre[: len(means)] = True
+    return {"xyz": pts, "rgb": np.tile(rgb, (7, 1)), "opacity": None, "scales": None, "centre": centre,
+            "gaussians": int(keep.sum())}
 
 
 def read_points_ply(path: str | Path) -> dict[str, np.ndarray | None]:
@@ -508,7 +562,7 @@ def traits_workspace(ws, cfg=None, *, points_path: str | Path | None = None, cal
 
     ws = ws if isinstance(ws, Workspace) else Workspace(ws)
     s = cfg if isinstance(cfg, TraitSettings) else TraitSettings()
-    ply = Path(points_path) if points_path else ws.points_ply
+    ply = Path(points_path) if points_path else (ws.splat_ply if s.extent_sigma > 0 else ws.points_ply)
     if not points_path:
         ws.require(ply, "export")
     if calibrated is None:
@@ -520,11 +574,15 @@ def traits_workspace(ws, cfg=None, *, points_path: str | Path | None = None, cal
                 f"{ws.poses_json}: missing, so the cloud's scale is unknown; run `plantsplat poses {ws.root}` "
                 "or pass --calibrated / --no-calibrated"
             )
-    data = read_points_ply(ply)
+    if s.extent_sigma > 0:
+        data = read_splat_extent_cloud(ply, s.opacity_min, s.extent_sigma)
+        log.info("traits: %s (%d Gaussians with their extents at %.2g sigma)", ply, data["gaussians"], s.extent_sigma)
+    else:
+        data = read_points_ply(ply)
     log.info("traits: %s (%d points, %s)", ply, len(data["xyz"]), "calibrated cm" if calibrated else "unscaled")
     cams = None if calibrated else _camera_centres(ws)
     res = measure_traits(data["xyz"], data["rgb"], calibrated=calibrated, opacity=data["opacity"],
-                         scales=data["scales"], camera_centres=cams, settings=s)
+                         scales=data["scales"], camera_centres=cams, settings=s, centre_mask=data.get("centre"))
     out = res.to_json()
     out["input"] = str(ply)
     out["scale"]["calibrated_input"] = bool(calibrated)
