@@ -1,0 +1,281 @@
+"""The numba CPU rasterizer against the pure-torch reference (values and gradients), edge cases,
+bad input, and the gsplat backend (CUDA only).
+
+Tolerances: images within 2e-5 absolute (float32, values in [0, 1]); gradients within 1e-4
+relative in the 2-norm (||g_cpu - g_ref|| / ||g_ref||) for every parameter.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from plantsplat.raster import RasterInputError, rasterize, resolve_backend
+
+GRAD_RTOL = 1e-4
+IMG_ATOL = 2e-5
+
+
+def _camera(width: int, height: int, f: float | None = None):
+    f = f or 0.9 * width
+    K = torch.tensor([[f, 0.0, width / 2 + 0.3], [0.0, f * 1.05, height / 2 - 0.2], [0.0, 0.0, 1.0]])
+    # a rotated, translated camera (not the identity) so viewmat gradients paths are exercised
+    ang = 0.3
+    R = torch.tensor([[math.cos(ang), 0.0, math.sin(ang)], [0.0, 1.0, 0.0], [-math.sin(ang), 0.0, math.cos(ang)]])
+    t = torch.tensor([0.1, -0.05, 0.2])
+    V = torch.eye(4)
+    V[:3, :3] = R
+    V[:3, 3] = t
+    return V, K
+
+
+def _scene(n: int, seed: int, edge_cases: bool = True, sh_degree: int | None = None):
+    g = torch.Generator().manual_seed(seed)
+    V, _ = _camera(8, 8)
+    # sample in camera space, then map to world, so most Gaussians are in view
+    z = torch.rand(n, generator=g) * 2.0 + 1.5
+    xy = (torch.rand(n, 2, generator=g) - 0.5) * 1.3 * z[:, None]
+    pc = torch.cat([xy, z[:, None]], dim=1)
+    R, t = V[:3, :3], V[:3, 3]
+    means = (pc - t) @ R  # world = R^T (pc - t)
+    quats = torch.randn(n, 4, generator=g)
+    scales = torch.exp(torch.randn(n, 3, generator=g) * 0.4) * 0.04
+    opac = torch.rand(n, generator=g) * 0.85 + 0.1
+    if sh_degree is None:
+        colors = torch.rand(n, 3, generator=g)
+    else:
+        colors = torch.randn(n, (sh_degree + 1) ** 2, 3, generator=g) * 0.3
+    if edge_cases and n >= 8:
+        means[0] = (torch.tensor([0.0, 0.0, -1.0]) - t) @ R  # behind the camera
+        means[1] = (torch.tensor([0.0, 0.0, 0.0]) - t) @ R  # at the camera centre (z = 0)
+        means[2] = (torch.tensor([1.3, 0.2, 2.0]) - t) @ R  # partly off-screen (right edge)
+        scales[3] = torch.tensor([3.0, 2.5, 2.0])  # huge: covers the whole image
+        opac[3] = 0.15
+        scales[4] = torch.tensor([1e-6, 1e-6, 1e-6])  # degenerate: only the eps2d blur remains
+        scales[5] = torch.tensor([0.2, 1e-7, 0.05])  # flat
+        opac[6] = 0.002  # below 1/255: culled
+        means[7] = (torch.tensor([-5.0, 0.0, 2.0]) - t) @ R  # far outside the view
+    return [means, quats, scales, opac, colors]
+
+
+def _run(params, width, height, backend, sh_degree=None, grad_w=None, tile_size=16):
+    params = [p.detach().clone().requires_grad_(True) for p in params]
+    V, K = _camera(width, height)
+    out = rasterize(*params, V, K, width, height, sh_degree=sh_degree, backend=backend, tile_size=tile_size)
+    if grad_w is None:
+        gen = torch.Generator().manual_seed(123)
+        grad_w = (torch.randn(height, width, 3, generator=gen), torch.randn(height, width, 1, generator=gen),
+                  torch.randn(height, width, 1, generator=gen))
+    loss = (out.color * grad_w[0]).sum() + (out.alpha * grad_w[1]).sum() + (out.depth * grad_w[2]).sum()
+    loss.backward()
+    grads = [p.grad for p in params]
+    m2g = out.means2d.grad
+    return out, grads, m2g
+
+
+def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
+    den = float(b.norm())
+    return float((a - b).norm()) / den if den > 0 else float(a.norm())
+
+
+def _compare(params, width, height, sh_degree=None, tile_size=16):
+    ref, gref, m2ref = _run(params, width, height, "reference", sh_degree, tile_size=tile_size)
+    cpu, gcpu, m2cpu = _run(params, width, height, "cpu", sh_degree, tile_size=tile_size)
+    torch.testing.assert_close(cpu.color, ref.color, atol=IMG_ATOL, rtol=0)
+    torch.testing.assert_close(cpu.alpha, ref.alpha, atol=IMG_ATOL, rtol=0)
+    torch.testing.assert_close(cpu.depth, ref.depth, atol=IMG_ATOL * 10, rtol=1e-5)
+    assert torch.equal(cpu.radii, ref.radii) and torch.equal(cpu.visible, ref.visible)
+    names = ["means", "quats", "scales", "opacities", "colors"]
+    for name, a, b in zip(names, gcpu, gref):
+        assert torch.isfinite(a).all(), name
+        assert _rel(a, b) < GRAD_RTOL, (name, _rel(a, b))
+    assert _rel(m2cpu, m2ref) < GRAD_RTOL
+    return ref, cpu
+
+
+@pytest.mark.parametrize("seed,width,height", [(0, 37, 29), (1, 64, 48), (2, 20, 33)])
+def test_cpu_matches_reference_values_and_gradients(seed, width, height):
+    ref, cpu = _compare(_scene(120, seed), width, height)
+    assert float(ref.alpha.detach().max()) > 0.5  # the scene is not empty
+    assert not bool(cpu.visible[0]) and not bool(cpu.visible[1])  # behind / at the camera: culled
+    assert not bool(cpu.visible[6]) and not bool(cpu.visible[7])  # transparent / far off-screen
+    assert bool(cpu.visible[3])  # the huge one is kept
+
+
+def test_cpu_matches_reference_with_sh_degree_3():
+    _compare(_scene(60, 5, sh_degree=3), 40, 30, sh_degree=3)
+
+
+def test_cpu_matches_reference_other_tile_size():
+    _compare(_scene(80, 6), 45, 27, tile_size=8)
+
+
+def test_dense_opaque_scene_stops_early_like_the_reference():
+    params = _scene(300, 7, edge_cases=False)
+    params[3] = torch.full((300,), 0.98)  # nearly opaque: pixels reach T <= 1e-4 and stop
+    params[2] = params[2] * 6
+    ref, cpu = _compare(params, 24, 20)
+    assert float((ref.alpha.detach() >= 1 - 1e-4 / 0.02).float().mean()) > 0.5  # most pixels stopped early
+
+
+def test_reference_matches_per_pixel_definition():
+    """The reference's dense compositing against a literal per-pixel loop of the definition."""
+    from plantsplat.raster.projection import project_gaussians
+
+    params = _scene(40, 8, edge_cases=False)
+    W, H = 24, 18
+    V, K = _camera(W, H)
+    out = rasterize(*params, V, K, W, H, backend="reference")
+    m2, con, z, r = project_gaussians(params[0], params[1], params[2], params[3], V, K, W, H)
+    order = sorted(range(40), key=lambda i: float(z[i]))
+    for (px, py) in [(3, 4), (12, 9), (20, 15)]:
+        T, c = 1.0, torch.zeros(3)
+        for i in order:
+            if not (r[i] > 0).all():
+                continue
+            # tile test (16 px tiles) as gsplat
+            tx0 = max(0, math.floor((float(m2[i, 0]) - int(r[i, 0])) / 16))
+            tx1 = math.ceil((float(m2[i, 0]) + int(r[i, 0])) / 16)
+            ty0 = max(0, math.floor((float(m2[i, 1]) - int(r[i, 1])) / 16))
+            ty1 = math.ceil((float(m2[i, 1]) + int(r[i, 1])) / 16)
+            if not (tx0 <= px // 16 < tx1 and ty0 <= py // 16 < ty1):
+                continue
+            dx, dy = float(m2[i, 0]) - (px + 0.5), float(m2[i, 1]) - (py + 0.5)
+            a, b, cc = (float(v) for v in con[i])
+            sig = 0.5 * (a * dx * dx + cc * dy * dy) + b * dx * dy
+            al = min(0.999, float(params[3][i]) * math.exp(-sig))
+            if sig < 0 or al < 1 / 255:
+                continue
+            if T * (1 - al) <= 1e-4:
+                break
+            c += params[4][i] * al * T
+            T *= 1 - al
+        torch.testing.assert_close(out.color[py, px], c, atol=1e-5, rtol=0)
+        assert abs(float(out.alpha[py, px, 0]) - (1 - T)) < 1e-5
+
+
+def test_single_pixel_and_zero_gaussians():
+    _compare(_scene(30, 9), 1, 1)
+    empty = [torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 3)]
+    for backend in ("cpu", "reference"):
+        out, grads, m2g = _run(empty, 17, 9, backend)
+        assert out.color.shape == (9, 17, 3) and float(out.alpha.abs().sum()) == 0.0
+        assert float(out.depth.abs().sum()) == 0.0 and out.radii.shape == (0,)
+        assert all(g is None or g.numel() == 0 for g in grads)
+
+
+def test_all_culled_gives_empty_image_and_finite_zero_gradients():
+    params = _scene(20, 10, edge_cases=False)
+    V, _ = _camera(8, 8)
+    params[0] = (torch.tensor([0.0, 0.0, -2.0]) + 0.01 * torch.randn(20, 3) - V[:3, 3]) @ V[:3, :3]  # behind
+    out, grads, _ = _run(params, 30, 20, "cpu")
+    assert float(out.alpha.abs().sum()) == 0.0 and not bool(out.visible.any())
+    for g in grads:
+        assert g is not None and torch.isfinite(g).all() and float(g.abs().sum()) == 0.0
+
+
+def test_no_grad_path_matches_training_path():
+    params = _scene(150, 11)
+    V, K = _camera(50, 40)
+    with torch.no_grad():
+        fast = rasterize(*params, V, K, 50, 40, backend="cpu")
+    slow, _, _ = _run(params, 50, 40, "cpu")
+    assert torch.equal(fast.color, slow.color.detach()) and torch.equal(fast.alpha, slow.alpha.detach())
+    assert fast.means2d.grad is None and not fast.color.requires_grad
+
+
+def test_expected_depth_convention():
+    # one Gaussian at camera depth 2: ED equals 2 wherever alpha > 0, 0 elsewhere
+    means = torch.tensor([[0.0, 0.0, 2.0]])
+    K = torch.tensor([[40.0, 0.0, 16.0], [0.0, 40.0, 16.0], [0.0, 0.0, 1.0]])
+    out = rasterize(means, torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), 0.05), torch.tensor([0.9]),
+                    torch.ones(1, 3), torch.eye(4), K, 32, 32, backend="cpu")
+    hit = out.alpha[..., 0] > 0
+    assert hit.any() and (~hit).any()
+    torch.testing.assert_close(out.depth[hit][:, 0], torch.full((int(hit.sum()),), 2.0))
+    assert float(out.depth[~hit].abs().sum()) == 0.0
+
+
+def test_resolve_backend():
+    assert resolve_backend("cpu") == "cpu" and resolve_backend("reference") == "reference"
+    assert resolve_backend("auto") in ("cpu", "gsplat")
+    if not torch.cuda.is_available():
+        assert resolve_backend("auto") == "cpu"
+    with pytest.raises(RasterInputError, match="unknown rasterizer backend"):
+        resolve_backend("vulkan")
+
+
+def _good():
+    p = _scene(10, 12, edge_cases=False)
+    V, K = _camera(16, 16)
+    return p, V, K
+
+
+@pytest.mark.parametrize(
+    "mutate,match",
+    [
+        (lambda p: p[0].__setitem__((2, 1), float("nan")), "means has 1 NaN/Inf"),
+        (lambda p: p[2].__setitem__((0, 0), float("inf")), "scales has 1 NaN/Inf"),
+        (lambda p: p[4].__setitem__((3, 2), float("nan")), "colors has 1 NaN/Inf"),
+        (lambda p: p.__setitem__(1, p[1][:5]), r"quats has shape \[5, 4\], expected \[10, 4\]"),
+        (lambda p: p.__setitem__(3, p[3][:, None]), r"opacities has shape \[10, 1\]"),
+        (lambda p: p.__setitem__(0, p[0][:, :2]), r"means has shape \[10, 2\]"),
+        (lambda p: p.__setitem__(3, p[3] + 1.5), "opacities must lie in"),
+        (lambda p: p.__setitem__(2, -p[2]), "scales must be positive"),
+    ],
+)
+def test_bad_parameters_raise_clear_errors(mutate, match):
+    p, V, K = _good()
+    mutate(p)
+    with pytest.raises(RasterInputError, match=match):
+        rasterize(*p, V, K, 16, 16, backend="cpu")
+
+
+def test_bad_camera_and_sizes_raise_clear_errors():
+    p, V, K = _good()
+    with pytest.raises(RasterInputError, match="width must be a positive int"):
+        rasterize(*p, V, K, 0, 16, backend="cpu")
+    with pytest.raises(RasterInputError, match=r"viewmat has shape \[3, 4\]"):
+        rasterize(*p, V[:3], K, 16, 16, backend="cpu")
+    Kbad = K.clone()
+    Kbad[0, 0] = float("nan")
+    with pytest.raises(RasterInputError, match="K has 1 NaN/Inf"):
+        rasterize(*p, V, Kbad, 16, 16, backend="cpu")
+    with pytest.raises(RasterInputError, match="sh_degree=2 needs at least 9"):
+        rasterize(*p[:4], torch.zeros(10, 4, 3), V, K, 16, 16, sh_degree=2, backend="cpu")
+    with pytest.raises(RasterInputError, match="multiple of 8"):
+        rasterize(*p, V, K, 16, 16, backend="cpu", tile_size=12)
+    with pytest.raises(RasterInputError, match="near < far"):
+        rasterize(*p, V, K, 16, 16, backend="cpu", near=2.0, far=1.0)
+
+
+def test_cli_style_error_is_one_line_plantsplat_error():
+    from plantsplat.errors import PlantsplatError
+
+    p, V, K = _good()
+    p[0][0, 0] = float("nan")
+    with pytest.raises(PlantsplatError) as exc:
+        rasterize(*p, V, K, 16, 16)
+    assert "\n" not in str(exc.value)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="gsplat backend needs CUDA (none on this machine)")
+def test_gsplat_backend_matches_cpu():  # pragma: no cover - needs a GPU
+    pytest.importorskip("gsplat")
+    params = _scene(200, 13)
+    W, H = 64, 48
+    cpu, gcpu, m2cpu = _run(params, W, H, "cpu")
+    V, K = _camera(W, H)
+    gp = [p.detach().clone().cuda().requires_grad_(True) for p in params]
+    out = rasterize(*gp, V.cuda(), K.cuda(), W, H, backend="gsplat")
+    gen = torch.Generator().manual_seed(123)
+    gw = [torch.randn(H, W, 3, generator=gen), torch.randn(H, W, 1, generator=gen), torch.randn(H, W, 1, generator=gen)]
+    loss = sum((o * w.cuda()).sum() for o, w in zip((out.color, out.alpha, out.depth), gw))
+    loss.backward()
+    torch.testing.assert_close(out.color.cpu(), cpu.color.detach(), atol=1e-4, rtol=0)
+    torch.testing.assert_close(out.alpha.cpu(), cpu.alpha.detach(), atol=1e-4, rtol=0)
+    for a, b in zip(gp, gcpu):
+        assert _rel(a.grad.cpu(), b) < 1e-3
+    assert _rel(out.means2d.grad.cpu(), m2cpu) < 1e-3
