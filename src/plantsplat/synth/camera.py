@@ -72,7 +72,7 @@ def camera_path(rng: np.random.Generator, n: int, soil_z: float, plant_height: f
     order = ["low", "mid", "high"] if rng.random() < 0.5 else ["high", "mid", "low"]
     direction = 1.0 if rng.random() < 0.5 else -1.0
     az0 = rng.uniform(0, 2 * np.pi)
-    dist = (0.8 * reach + 3.0) / np.tan(np.radians(fov_short_deg) / 2) * rng.uniform(0.9, 1.05)
+    dist = (0.85 * reach + 3.0) / np.tan(np.radians(fov_short_deg) / 2) * rng.uniform(0.92, 1.05)
     dist = float(np.clip(dist, 30.0, 160.0))
     t = (np.arange(n) + 0.5) / n  # [n] in (0, 1)
     seg = np.minimum((t * 3).astype(int), 2)

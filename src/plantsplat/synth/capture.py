@@ -61,6 +61,27 @@ def _versions() -> dict:
     return out
 
 
+def _remove_stale_frames(out: Path, n: int) -> None:
+    """With --force over an earlier synth capture, drop its frames/masks beyond the new frame count.
+
+    Only folders of a previous ``plantsplat synth`` run (its ``ground_truth.json`` has our format) are
+    touched, and only ``frame_NNNNN.png`` files with an index >= ``n``.
+    """
+    import json
+
+    try:
+        old = json.loads((out / "ground_truth.json").read_text())
+    except (OSError, ValueError):
+        return
+    if not isinstance(old, dict) or old.get("format") != FORMAT:
+        return
+    for sub in ("frames", "masks"):
+        for p in (out / sub).glob("frame_*.png"):
+            stem = p.stem.split("_")[-1]
+            if stem.isdigit() and int(stem) >= n:
+                p.unlink()
+
+
 def generate(cfg: SynthConfig) -> dict:
     """Write a complete capture into ``cfg.out`` and return paths, timings and the ground-truth traits."""
     from plantsplat.cube import CubeSpec
@@ -77,6 +98,7 @@ def generate(cfg: SynthConfig) -> dict:
     t_all = time.perf_counter()
     timings: dict[str, float] = {}
     out = prepare_output_dir(cfg.out, cfg.force)
+    _remove_stale_frames(out, cfg.frames)
     (out / "frames").mkdir(exist_ok=True)
     (out / "masks").mkdir(exist_ok=True)
     s_scene, s_tex, s_cam, s_sensor, s_gt, s_noise = np.random.SeedSequence(cfg.seed).spawn(6)
@@ -166,6 +188,7 @@ def generate(cfg: SynthConfig) -> dict:
         for f in pending:
             f.result()
         video_settings = vw.settings
+    gl_renderer = renderer.ctx.info["GL_RENDERER"]
     renderer.release()
     timings.update(render_s=t_render, develop_s=t_dev, visibility_s=t_vis)
 
@@ -191,7 +214,7 @@ def generate(cfg: SynthConfig) -> dict:
         intrinsics=intr, pixel_convention=PIXEL_CONVENTION, camera_convention=CAMERA_CONVENTION,
         camera_path=dict(path, fov_long_side_deg=fov_long, rings_above_soil_cm=cam.RINGS),
         frames=frames_json, cube=cube_info, fps=FPS,
-        render=dict(renderer="moderngl " + renderer_name(), msaa_samples=int(cfg.msaa), mask_rule=MASK_RULE,
+        render=dict(renderer=f"moderngl {gl_renderer} (EGL)", msaa_samples=int(cfg.msaa), mask_rule=MASK_RULE,
                     clean=bool(cfg.clean), sensor=sensor.settings(), video=video_settings,
                     texture_layer_size=int(layers.shape[1])),
         versions=_versions(),
@@ -204,9 +227,3 @@ def generate(cfg: SynthConfig) -> dict:
                                     ground_truth=out / "ground_truth.json"),
                 timings=timings, traits=traits, frames=cfg.frames)
 
-
-_RENDERER_NAME: list[str] = []
-
-
-def renderer_name() -> str:
-    return _RENDERER_NAME[0] if _RENDERER_NAME else "EGL"

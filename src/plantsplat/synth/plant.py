@@ -141,7 +141,7 @@ def _leaf(rng, idx, crown, crown_r, azim, L, elev, leaflet_len, pot: Pot, tint):
     base = crown + h * crown_r * 0.5 + Z * 0.3
     Lh, Lv = L * np.cos(elev), L * np.sin(elev)
     tip = base + h * Lh + Z * Lv
-    ctrl = base + h * Lh * rng.uniform(0.0, 0.3) + Z * Lv * rng.uniform(1.05, 1.3)
+    ctrl = base + h * Lh * rng.uniform(0.05, 0.4) + Z * Lv * rng.uniform(1.1, 1.4)
     curve = _bezier(np.stack([base, ctrl, tip]), 14)
     rad = np.linspace(0.22, 0.13, 14) * (leaflet_len / 5.0) ** 0.5
     pet_col = np.array([0.32, 0.45, 0.16]) * tint
@@ -246,7 +246,7 @@ def _draw_plant(rng: np.random.Generator, pot: Pot, avoid_azimuth: float | None)
     soil = pot.soil_z
     crown = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), soil])
     crown_r = rng.uniform(1.3, 2.4)
-    scale = rng.uniform(0.45, 1.45)
+    scale = rng.uniform(0.4, 1.6)
     n_leaves = int(rng.integers(5, 16))
     aniso = rng.uniform(0.12, 0.4)
     phi2, phi1, lop = rng.uniform(0, np.pi), rng.uniform(0, 2 * np.pi), rng.uniform(0.0, 0.2)
@@ -259,9 +259,9 @@ def _draw_plant(rng: np.random.Generator, pot: Pot, avoid_azimuth: float | None)
         azim = az0 + i * golden + rng.normal(0, 0.25)
         reach = 1 + aniso * np.cos(2 * (azim - phi2)) + lop * np.cos(azim - phi1)
         age = i / max(n_leaves - 1, 1)  # 0 = oldest (outer, low), 1 = youngest (upright)
-        L = 16.0 * scale * reach * rng.uniform(0.8, 1.15) * (1.05 - 0.3 * age)
-        elev = np.radians(rng.uniform(40, 58) + 25 * age)
-        leaflet_len = (4.2 + 2.6 * scale) * rng.uniform(0.85, 1.1) * (1.0 - 0.2 * age)
+        L = 14.0 * scale * reach * rng.uniform(0.8, 1.15) * (1.05 - 0.3 * age)
+        elev = np.radians(rng.uniform(35, 55) + 25 * age)
+        leaflet_len = (4.5 + 3.2 * scale) * rng.uniform(0.85, 1.1) * (1.0 - 0.15 * age)
         tint = tint_base * (1.0 + 0.25 * (age - 0.5)) * rng.uniform(0.92, 1.08)
         for _ in range(10):
             parts, curve, bv, info = _leaf(rng, i, crown, crown_r, azim, L, elev, leaflet_len, pot, tint)
