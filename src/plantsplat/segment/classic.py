@@ -1,0 +1,295 @@
+"""The classic (offline, model-free) segmenter: plant colours + cube geometry + multi-view consistency.
+
+Per capture (all frames at once):
+
+1. **Markers and cameras.** ArUco markers are detected in every frame; the intrinsics are estimated
+   from the cube's known 3D marker corners (:func:`geometry.estimate_intrinsics`) and each frame's
+   camera pose in the cube frame is solved (short gaps interpolated).
+2. **Where the plant is.** The camera circles the plant, so the point closest to every optical axis
+   (the orbit centre) lies in the plant. A coarse visual hull is carved from the frames' strong
+   plant-colour masks; its 3D connected component on the vertical axis through the orbit centre
+   (plus pieces within a couple of centimetres) is the plant. Green objects elsewhere in the room
+   (decoys, posters, other plants) are other components and are dropped in 3D, whatever their colour.
+3. **Per frame.** The plant's hull is projected (with a margin) as the region of interest. Inside it,
+   plant colours are taken with hysteresis (strong seeds grow into weak pixels), small pale blobs
+   touching the plant (flowers) are added, specks are removed and pinholes filled. The cube is added
+   as its exact projected silhouette (all six faces, also where no marker is visible).
+
+Without a usable cube (no markers, or too few poses) step 2 falls back to 2D: the plant is the
+large plant-coloured region nearest the image centre in each frame.
+
+Example:
+    >>> seg = ClassicSegmenter()
+    >>> ctx = seg.analyse(["ws/images/frame_00000.png", ...])
+    >>> mask, info = seg.mask(0, rgb, ctx)      # bool [H, W]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from plantsplat.cube import CubeSpec, detect_markers
+from plantsplat.io import read_image
+from plantsplat.log import get_logger, progress
+from plantsplat.segment import geometry as geo
+from plantsplat.segment.colour import ColourModel, plant_colour_masks
+
+log = get_logger(__name__)
+
+
+@dataclass(frozen=True)
+class ClassicSettings:
+    """Settings of the classic segmenter (defaults suit phone captures at 540x960 to 1080x1920)."""
+
+    colour: ColourModel = field(default_factory=ColourModel)
+    cube: CubeSpec = field(default_factory=CubeSpec)
+    use_cube: bool = True
+    """Use the cube: its silhouette is foreground, and its poses locate the plant in 3D."""
+    analysis_size: int = 240
+    """Longer side (px) of the downscaled masks used for the visual hull and 2D analysis."""
+    hull_voxels: int = 72
+    """Voxels along each horizontal side of the visual-hull grid."""
+    hull_keep_fraction: float = 0.8
+    """A voxel is plant when it falls on plant colour in at least this fraction of the views seeing it."""
+    roi_margin_cm: float = 2.5
+    """Margin (cm) around the projected plant hull inside which plant-coloured pixels are accepted."""
+    join_gap_cm: float = 3.0
+    """Hull pieces within this distance (cm) of the plant belong to it (separated leaves, fruit)."""
+    weak_band: float = 0.006
+    """Weak plant colours are accepted only this far (fraction of the longer image side) from strong ones."""
+    pale_max_area: float = 0.004
+    """Largest pale (white/yellow) blob accepted as flower, as a fraction of the image area."""
+    min_blob: float = 2e-5
+    """Plant pieces smaller than this fraction of the image are dropped as specks."""
+    fill_holes: float = 1.5e-4
+    """Holes smaller than this fraction of the image are filled."""
+    min_poses: int = 6
+    """Fewer frames with a cube pose than this: fall back to the 2D plant locator."""
+
+
+@dataclass
+class CaptureContext:
+    """What :meth:`ClassicSegmenter.analyse` learns from all frames."""
+
+    size: tuple[int, int]  # (w, h) of the frames
+    detections: list[dict[int, np.ndarray]]
+    K: np.ndarray | None = None
+    dist: np.ndarray | None = None
+    poses: list[np.ndarray | None] = field(default_factory=list)
+    pose_source: list[str] = field(default_factory=list)
+    hull_points: np.ndarray | None = None  # [M, 3] plant voxel centres (cube frame, cm)
+    voxel: float = 0.0
+    centre: np.ndarray | None = None
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+def _small_size(w: int, h: int, longest: int) -> tuple[int, int, float]:
+    s = min(1.0, longest / max(w, h))
+    return max(1, int(round(w * s))), max(1, int(round(h * s))), s
+
+
+def _disk(r: float):
+    import cv2
+
+    r = max(0, int(round(r)))
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+
+
+class ClassicSegmenter:
+    """Offline plant + cube segmenter (see the module docstring for the method)."""
+
+    def __init__(self, settings: ClassicSettings = ClassicSettings()):
+        self.s = settings
+
+    # ---------------------------------------------------------------- pass 1: the whole capture
+    def analyse(self, image_paths: list[Path]) -> CaptureContext:
+        """Read every frame once: markers, strong colour masks, cameras, the plant's visual hull."""
+        import cv2
+
+        s = self.s
+        dets: list[dict[int, np.ndarray]] = []
+        smalls: list[np.ndarray] = []
+        size = None
+        for p in progress(image_paths, "segment: markers and colours"):
+            rgb = read_image(p)
+            h, w = rgb.shape[:2]
+            if size is None:
+                size = (w, h)
+            elif (w, h) != size:
+                from plantsplat.errors import PlantsplatError
+
+                raise PlantsplatError(f"{p}: size {w}x{h} differs from the other frames' {size[0]}x{size[1]}; re-run `plantsplat frames`")
+            dets.append(detect_markers(rgb, s.cube) if s.use_cube else {})
+            strong, _, _ = plant_colour_masks(rgb, s.colour)
+            sw, sh, _ = _small_size(w, h, s.analysis_size)
+            small = cv2.resize(strong.astype(np.uint8) * 255, (sw, sh), interpolation=cv2.INTER_AREA) >= 48
+            smalls.append(small)
+        assert size is not None
+        ctx = CaptureContext(size=size, detections=dets)
+        ctx.info["frames_with_markers"] = int(sum(1 for d in dets if d))
+        if s.use_cube:
+            self._geometry(ctx, smalls)
+        ctx.info["plant_locator"] = "3d" if ctx.hull_points is not None else "2d"
+        self._smalls = smalls
+        return ctx
+
+    def _geometry(self, ctx: CaptureContext, smalls: list[np.ndarray]) -> None:
+        import cv2
+
+        s = self.s
+        est = geo.estimate_intrinsics(ctx.detections, ctx.size, s.cube)
+        if est is None:
+            log.warning("segment: the cube's markers were found in fewer than 3 frames; locating the plant in 2D")
+            return
+        ctx.K, ctx.dist, kinfo = est
+        ctx.info["intrinsics"] = kinfo
+        ctx.poses, rms, ctx.pose_source = geo.cube_poses(ctx.detections, ctx.K, ctx.dist, s.cube)
+        n_pose = sum(p is not None for p in ctx.poses)
+        ctx.info["frames_with_cube_pose"] = n_pose
+        ctx.info["frames_with_interpolated_pose"] = sum(h == "interpolated" for h in ctx.pose_source)
+        good = [r for r in rms if r is not None]
+        ctx.info["cube_pose_rms_px_median"] = round(float(np.median(good)), 4) if good else None
+        if n_pose < s.min_poses:
+            log.warning("segment: a cube pose in only %d frames; locating the plant in 2D", n_pose)
+            return
+        centre = geo.orbit_centre(ctx.poses)
+        cams = np.array([np.linalg.inv(T)[:3, 3] for T in ctx.poses if T is not None])  # [P, 3]
+        if centre is None:
+            log.warning("segment: the camera does not circle a point; locating the plant in 2D")
+            return
+        horiz = np.hypot(cams[:, 0] - centre[0], cams[:, 1] - centre[1])
+        D = float(np.median(horiz))
+        depth = float(np.median(np.linalg.norm(cams - centre, axis=1)))
+        radius = 0.6 * D
+        z_hi = max(float(cams[:, 2].max()), 2 * float(centre[2])) + 0.3 * D
+        sw, sh, sc = _small_size(*ctx.size, s.analysis_size)
+        Ks = ctx.K.copy()
+        Ks[:2] *= sc
+        Ks[0, 2] = (ctx.K[0, 2] + 0.5) * sc - 0.5
+        Ks[1, 2] = (ctx.K[1, 2] + 0.5) * sc - 0.5
+        vs = 2 * radius / s.hull_voxels
+        r_px = 0.87 * vs * Ks[0, 0] / depth
+        kernel = _disk(np.ceil(r_px))
+        carve_masks = [cv2.dilate(m.astype(np.uint8), kernel).astype(bool) if ctx.poses[i] is not None else None
+                       for i, m in enumerate(smalls)]
+        log.info("segment: carving the plant's visual hull from %d views", n_pose)
+        occ, origin, vs = geo.visual_hull(carve_masks, ctx.poses, Ks, centre, radius, (-0.05 * D, z_hi),
+                                          s.hull_voxels, s.hull_keep_fraction)
+        plant = geo.plant_component(occ, origin, vs, centre[:2], 0.12 * D, s.join_gap_cm)
+        idx = np.argwhere(plant)
+        ctx.info.update(orbit_centre=centre.round(3), orbit_radius_cm=round(D, 2), hull_voxel_cm=round(vs, 3),
+                        hull_voxels_total=int(occ.sum()), hull_voxels_plant=int(len(idx)))
+        if len(idx) == 0:
+            log.warning("segment: no plant-coloured volume found around the orbit centre; locating the plant in 2D")
+            return
+        ctx.hull_points = origin + idx * vs
+        ctx.voxel = vs
+        ctx.centre = centre
+        self._Ks = Ks
+
+    # ---------------------------------------------------------------- pass 2: one frame
+    def _roi_3d(self, i: int, ctx: CaptureContext) -> np.ndarray | None:
+        import cv2
+
+        T = ctx.poses[i]
+        if T is None or ctx.hull_points is None:
+            return None
+        s = self.s
+        h, w = self._smalls[i].shape
+        uv, z = geo.project(ctx.hull_points, T, self._Ks)
+        ok = z > 1e-3
+        u = np.round(uv[ok, 0]).astype(np.int64)
+        v = np.round(uv[ok, 1]).astype(np.int64)
+        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        roi = np.zeros((h, w), np.uint8)
+        roi[v[inside], u[inside]] = 1
+        depth = float(np.median(z[ok])) if ok.any() else 1.0
+        r = (0.87 * ctx.voxel + s.roi_margin_cm) * self._Ks[0, 0] / max(depth, 1e-3)
+        return cv2.dilate(roi, _disk(np.ceil(r))).astype(bool)
+
+    def _roi_2d(self, i: int) -> np.ndarray:
+        """Plant region without geometry: plant-coloured blobs nearest the image centre, joined."""
+        import cv2
+
+        small = self._smalls[i].astype(np.uint8)
+        h, w = small.shape
+        join = cv2.morphologyEx(small, cv2.MORPH_CLOSE, _disk(0.03 * max(h, w)))
+        n, lab, stats, cents = cv2.connectedComponentsWithStats(join, connectivity=8)
+        if n <= 1:
+            return np.zeros((h, w), bool)
+        areas = stats[1:, cv2.CC_STAT_AREA].astype(np.float64)
+        d = np.hypot((cents[1:, 0] - w / 2) / w, (cents[1:, 1] - h / 2) / h)
+        score = areas * np.exp(-((d / 0.3) ** 2))
+        best = 1 + int(np.argmax(score))
+        keep = lab == best
+        grown = cv2.dilate(keep.astype(np.uint8), _disk(0.04 * max(h, w))).astype(bool)
+        for k in range(1, n):
+            if k != best and (grown & (lab == k)).any() and areas[k - 1] >= 0.002 * h * w:
+                keep |= lab == k
+        return cv2.dilate(keep.astype(np.uint8), _disk(0.02 * max(h, w))).astype(bool)
+
+    def mask(self, i: int, rgb: np.ndarray, ctx: CaptureContext) -> tuple[np.ndarray, dict[str, Any]]:
+        """Foreground (plant + cube) of frame ``i``: bool ``[H, W]`` and per-frame facts."""
+        plant, cube, info = self.mask_parts(i, rgb, ctx)
+        return plant | cube, info
+
+    def mask_parts(self, i: int, rgb: np.ndarray, ctx: CaptureContext) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+        """Plant and cube masks of frame ``i`` separately: two bool ``[H, W]`` and per-frame facts."""
+        import cv2
+
+        s = self.s
+        H, W = rgb.shape[:2]
+        strong, weak, pale = plant_colour_masks(rgb, s.colour)
+        roi_small = self._roi_3d(i, ctx)
+        locator = "3d"
+        if roi_small is None:
+            roi_small = self._roi_2d(i)
+            locator = "2d"
+        roi = cv2.resize(roi_small.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
+        seeds = strong & roi
+        band = cv2.dilate(seeds.astype(np.uint8), _disk(s.weak_band * max(H, W))).astype(bool)
+        cand = (weak & roi & band).astype(np.uint8)
+        # hysteresis: weak components that contain a strong pixel
+        n, lab = cv2.connectedComponents(cand, connectivity=8)
+        plant = np.zeros((H, W), bool)
+        if n > 1:
+            has_seed = np.zeros(n, bool)
+            has_seed[np.unique(lab[seeds])] = True
+            has_seed[0] = False
+            plant = has_seed[lab]
+        # pale blobs (flowers) touching the plant, small ones only
+        if pale.any() and plant.any():
+            n2, lab2, st2, _ = cv2.connectedComponentsWithStats((pale & roi).astype(np.uint8), connectivity=8)
+            if n2 > 1:
+                touch = cv2.dilate(plant.astype(np.uint8), _disk(2)).astype(bool)
+                ok = np.zeros(n2, bool)
+                ok[np.unique(lab2[touch])] = True
+                ok[0] = False
+                ok &= st2[:, cv2.CC_STAT_AREA] <= s.pale_max_area * H * W
+                plant |= ok[lab2]
+        # specks out, pinholes in
+        n3, lab3, st3, _ = cv2.connectedComponentsWithStats(plant.astype(np.uint8), connectivity=8)
+        if n3 > 1:
+            big = st3[:, cv2.CC_STAT_AREA] >= s.min_blob * H * W
+            big[0] = False
+            plant = big[lab3]
+        n4, lab4, st4, _ = cv2.connectedComponentsWithStats((~plant).astype(np.uint8), connectivity=4)
+        if n4 > 1:
+            x, y, w_, h_ = st4[:, 0], st4[:, 1], st4[:, 2], st4[:, 3]
+            border = (x == 0) | (y == 0) | (x + w_ >= W) | (y + h_ >= H)  # touching the border: background
+            fill = (st4[:, cv2.CC_STAT_AREA] < s.fill_holes * H * W) & ~border
+            fill[0] = False  # label 0 = the plant pixels themselves
+            plant |= fill[lab4]
+        plant_fraction = float(plant.mean())
+        cube = np.zeros((H, W), bool)
+        pose = ctx.pose_source[i] if ctx.pose_source else "none"
+        if s.use_cube and ctx.poses and ctx.pose_source[i] == "markers" and ctx.K is not None:
+            cube = geo.cube_silhouette(ctx.poses[i], ctx.K, ctx.dist, (W, H), s.cube)
+        fg = plant | cube
+        return plant, cube, {"plant_fraction": plant_fraction, "cube_fraction": float(cube.mean()),
+                    "foreground_fraction": float(fg.mean()), "locator": locator, "cube_pose": pose,
+                    "markers": sorted(ctx.detections[i])}

@@ -1,0 +1,89 @@
+"""Plant colour models: per-pixel classes for leaves, petioles, fruit and flowers.
+
+Two levels per class, used with hysteresis by the segmenter: *strong* pixels are almost surely
+plant tissue (they seed the plant), *weak* pixels are accepted only where they touch strong ones.
+
+- green tissue (leaves of every shade, petioles, calyx, unripe fruit): Meyer & Neto's excess green
+  minus excess red index ``ExG - ExR`` on chromatic coordinates (a standard vegetation index, robust
+  to shading), restricted to the hue range of foliage (yellow-green to teal) and a minimum
+  brightness so that near-black noise is not classified;
+- red/pink fruit: high-saturation red hue (HSV), which excludes brownish soil and pale pots;
+- white/cream flowers and yellow flower centres: only weak (they are also the colour of walls and
+  of the cube) and thus accepted only next to strong plant tissue.
+
+Example:
+    >>> import numpy as np
+    >>> img = np.zeros((4, 4, 3), np.uint8); img[:2] = (40, 140, 40)   # green top half
+    >>> strong, weak, pale = plant_colour_masks(img)
+    >>> bool(strong[0, 0]), bool(strong[3, 3])
+    (True, False)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ColourModel:
+    """Thresholds of the plant colour classes (OpenCV HSV: H in [0, 180), S and V in [0, 255])."""
+
+    exgr_strong: float = 0.08
+    """ExG - ExR above this (and foliage hue) = strong green tissue."""
+    exgr_weak: float = -0.02
+    """ExG - ExR above this (and foliage hue) = weak green tissue."""
+    green_hue: tuple[int, int] = (22, 100)
+    """Foliage hue range (OpenCV units; 22 = 44 deg yellow-green, 100 = 200 deg teal)."""
+    min_value: int = 28
+    """Pixels darker than this (HSV V) are never plant colour (noise, deep shadow)."""
+    min_sat_green: int = 100
+    """Strong green needs at least this saturation (living leaves are saturated; painted walls are not)."""
+    min_sat_weak: int = 45
+    """Weak green needs at least this saturation."""
+    red_hue: tuple[int, int] = (6, 165)
+    """Red fruit: hue at most the first or at least the second value (terracotta and soil, 8-15, are out)."""
+    red_sat_strong: int = 120
+    red_sat_weak: int = 70
+    white_sat: int = 50
+    """Weak white (flowers): saturation at most this and value at least ``white_value``."""
+    white_value: int = 165
+
+
+def plant_colour_masks(
+    rgb: np.ndarray, model: ColourModel = ColourModel()
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Plant-colour masks of an RGB uint8 image ``[H, W, 3]`` -> ``(strong, weak, pale)``, bool ``[H, W]``.
+
+    ``strong``: green tissue and red fruit; ``weak`` (includes ``strong``): paler or darker green and
+    red; ``pale``: white/cream (flowers, unripe fruit), which the segmenter accepts only as small blobs
+    touching the plant.
+
+    Example:
+        >>> import numpy as np
+        >>> s, w, p = plant_colour_masks(np.full((2, 2, 3), (200, 30, 40), np.uint8))  # strawberry red
+        >>> bool(s.all()), bool(w.all()), bool(p.any())
+        (True, True, False)
+    """
+    import cv2
+
+    rgb = np.ascontiguousarray(rgb)
+    hsv = cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)  # [H, W, 3] uint8
+    h, s, v = hsv[..., 0], hsv[..., 1], hsv[..., 2]
+    f = rgb.astype(np.float32)
+    tot = f.sum(axis=2) + 1e-3
+    r, g, b = f[..., 0] / tot, f[..., 1] / tot, f[..., 2] / tot
+    exgr = (2 * g - r - b) - (1.4 * r - g)  # ExG - ExR, [H, W]
+    bright = v >= model.min_value
+    hue_green = (h >= model.green_hue[0]) & (h <= model.green_hue[1])
+    green_strong = (exgr > model.exgr_strong) & hue_green & (s >= model.min_sat_green) & bright
+    green_weak = (exgr > model.exgr_weak) & hue_green & (s >= model.min_sat_weak) & bright
+    hue_red = (h <= model.red_hue[0]) | (h >= model.red_hue[1])
+    red_strong = hue_red & (s >= model.red_sat_strong) & (v >= 60)
+    red_weak = hue_red & (s >= model.red_sat_weak) & bright
+    white = (s <= model.white_sat) & (v >= model.white_value)
+    strong = green_strong | red_strong
+    weak = strong | green_weak | red_weak
+    pale = white & ~weak
+    return strong, weak, pale

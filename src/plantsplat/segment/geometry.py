@@ -1,0 +1,288 @@
+"""Multi-view geometry from the marker cube: intrinsics, per-frame cube pose, cube silhouette, orbit
+centre and a coarse visual hull of the plant.
+
+A phone video carries no intrinsics, but the cube's markers are a non-planar calibration target with
+known 3D corners: a focal-length search (minimising the multi-marker PnP reprojection error) gives a
+starting point and OpenCV's ``calibrateCamera`` refines it over every frame with markers. With the
+intrinsics, :func:`plantsplat.cube.cube_pose` gives each frame's camera pose in the cube frame
+(cm, z up, origin on the ground under the cube), which is a world frame because the cube does not
+move. Short gaps (frames whose markers are hidden) are bridged by interpolating the camera pose.
+
+Example:
+    >>> K, dist, info = estimate_intrinsics(detections, (540, 960))
+    >>> poses, rms, how = cube_poses(detections, K, dist)
+    >>> hull = cube_silhouette(poses[0], K, dist, (540, 960))   # bool [960, 540]
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from plantsplat.cube import CubeSpec, cube_pose
+from plantsplat.log import get_logger
+
+log = get_logger(__name__)
+
+
+def _pose_errors(dets: list[dict[int, np.ndarray]], K: np.ndarray, cube: CubeSpec) -> float:
+    errs = []
+    for d in dets:
+        r = cube_pose(d, K, None, cube)
+        if r is not None:
+            errs.append(r[1])
+    return float(np.median(errs)) if errs else np.inf
+
+
+def estimate_intrinsics(
+    detections: list[dict[int, np.ndarray]],
+    image_size: tuple[int, int],
+    cube: CubeSpec = CubeSpec(),
+    max_views: int = 40,
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]] | None:
+    """Pinhole intrinsics from the cube's marker corners over many frames.
+
+    ``detections``: per frame ``{marker_id: corners [4, 2]}``; ``image_size``: ``(width, height)``.
+    The principal point is fixed at the image centre, pixels are square and distortion is zero
+    (phone videos are distortion-corrected in camera). Returns ``(K [3, 3], dist [5], info)`` or
+    ``None`` when fewer than 3 frames show markers.
+
+    Example:
+        >>> K, dist, info = estimate_intrinsics(dets, (540, 960))
+        >>> round(K[0, 0])      # focal length in pixels
+        731
+    """
+    import cv2
+
+    w, h = image_size
+    views = [d for d in detections if d]
+    if len(views) < 3:
+        return None
+    multi = [d for d in views if len(d) >= 2]
+    pool = multi if len(multi) >= 3 else views
+    rng = np.random.default_rng(0)
+    sample = [pool[i] for i in sorted(rng.choice(len(pool), size=min(len(pool), 24), replace=False))]
+
+    def K_of(f):
+        return np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1]], dtype=np.float64)
+
+    # coarse log-spaced search, then golden-section refinement of the median reprojection error
+    fs = np.geomspace(0.3, 4.0, 28) * max(w, h)
+    errs = [_pose_errors(sample, K_of(f), cube) for f in fs]
+    i = int(np.argmin(errs))
+    lo, hi = fs[max(i - 1, 0)], fs[min(i + 1, len(fs) - 1)]
+    g = (np.sqrt(5) - 1) / 2
+    a, b = lo, hi
+    c, d = b - g * (b - a), a + g * (b - a)
+    ec, ed = _pose_errors(sample, K_of(c), cube), _pose_errors(sample, K_of(d), cube)
+    for _ in range(18):
+        if ec < ed:
+            b, d, ed = d, c, ec
+            c = b - g * (b - a)
+            ec = _pose_errors(sample, K_of(c), cube)
+        else:
+            a, c, ec = c, d, ed
+            d = a + g * (b - a)
+            ed = _pose_errors(sample, K_of(d), cube)
+    f0 = (a + b) / 2
+    K = K_of(f0)
+    info: dict[str, Any] = {"method": "focal search", "focal_search": round(float(f0), 3),
+                            "views": len(views), "multi_marker_views": len(multi)}
+    # refine over many views (all marker corners at once)
+    use = pool if len(pool) <= max_views else [pool[i] for i in np.linspace(0, len(pool) - 1, max_views).astype(int)]
+    obj = [np.concatenate([cube.marker_corners(i) for i in sorted(d)]).astype(np.float32) for d in use]
+    img = [np.concatenate([d[i] for i in sorted(d)]).astype(np.float32) for d in use]
+    flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_ASPECT_RATIO
+             | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3)
+    try:
+        rms, K1, _, _, _ = cv2.calibrateCamera(obj, img, (w, h), K.copy(), np.zeros(5), flags=flags)
+        if np.isfinite(rms) and 0.25 * f0 < K1[0, 0] < 4 * f0 and rms < 5.0:
+            K = K1
+            info.update(method="calibrateCamera", rms_px=round(float(rms), 4))
+    except cv2.error as exc:  # degenerate views: keep the search result
+        info["calibrate_error"] = str(exc).splitlines()[0][:120]
+    info["fx"] = round(float(K[0, 0]), 3)
+    return K, np.zeros(5), info
+
+
+def cube_poses(
+    detections: list[dict[int, np.ndarray]],
+    K: np.ndarray,
+    dist: np.ndarray | None = None,
+    cube: CubeSpec = CubeSpec(),
+    max_rms: float = 3.0,
+    max_gap: int = 3,
+    max_step_deg: float = 20.0,
+) -> tuple[list[np.ndarray | None], list[float | None], list[str]]:
+    """Per-frame ``T_cam_cube [4, 4]`` from markers; short gaps bridged by interpolating the camera.
+
+    Frames whose markers fit worse than ``max_rms`` pixels are treated as undetected. A run of at
+    most ``max_gap`` frames without a pose between two frames with one gets an interpolated pose
+    (slerp of the rotation, linear camera centre) when the camera turned less than ``max_step_deg``
+    between them. Returns ``(poses, rms, how)`` with ``how`` in
+    ``{"markers", "interpolated", "none"}``.
+    """
+    from scipy.spatial.transform import Rotation, Slerp
+
+    n = len(detections)
+    poses: list[np.ndarray | None] = [None] * n
+    rms: list[float | None] = [None] * n
+    how = ["none"] * n
+    for i, d in enumerate(detections):
+        r = cube_pose(d, K, dist, cube) if d else None
+        if r is not None and r[1] <= max_rms:
+            poses[i], rms[i], how[i] = r[0], r[1], "markers"
+    have = [i for i in range(n) if poses[i] is not None]
+    for a, b in zip(have[:-1], have[1:]):
+        if 1 < b - a <= max_gap + 1:
+            ca, cb = np.linalg.inv(poses[a]), np.linalg.inv(poses[b])  # camera-to-cube
+            turn = np.degrees(Rotation.from_matrix(ca[:3, :3].T @ cb[:3, :3]).magnitude())
+            if turn > max_step_deg:
+                continue
+            slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([ca[:3, :3], cb[:3, :3]])))
+            for j in range(a + 1, b):
+                t = (j - a) / (b - a)
+                c2w = np.eye(4)
+                c2w[:3, :3] = slerp([t]).as_matrix()[0]
+                c2w[:3, 3] = (1 - t) * ca[:3, 3] + t * cb[:3, 3]
+                poses[j], how[j] = np.linalg.inv(c2w), "interpolated"
+    return poses, rms, how
+
+
+def project(points: np.ndarray, T_cam_world: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pinhole projection of world points ``[N, 3]`` -> pixels ``[N, 2]`` and depths ``[N]``."""
+    pc = points @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]  # [N, 3]
+    z = pc[:, 2]
+    uv = (pc @ K.T)[:, :2] / np.maximum(z, 1e-6)[:, None]
+    return uv, z
+
+
+def cube_silhouette(
+    T_cam_cube: np.ndarray, K: np.ndarray, dist: np.ndarray | None, size: tuple[int, int], cube: CubeSpec = CubeSpec()
+) -> np.ndarray:
+    """Exact silhouette of the whole cube (all 6 faces) in one frame: bool ``[H, W]``.
+
+    The cube is convex, so its silhouette is the convex hull of its 8 projected vertices (drawn with
+    1/16-pixel precision).
+    """
+    import cv2
+
+    w, h = size
+    out = np.zeros((h, w), np.uint8)
+    corners = cube.corners()  # [8, 3]
+    pc = corners @ T_cam_cube[:3, :3].T + T_cam_cube[:3, 3]
+    if np.any(pc[:, 2] <= 1e-3):
+        return out.astype(bool)  # the camera is inside / behind the cube: nothing sensible to draw
+    rvec = cv2.Rodrigues(T_cam_cube[:3, :3])[0]
+    uv, _ = cv2.projectPoints(corners, rvec, T_cam_cube[:3, 3], K, np.zeros(5) if dist is None else dist)
+    hull = cv2.convexHull(uv.reshape(-1, 2).astype(np.float32))
+    cv2.fillConvexPoly(out, np.round(hull.reshape(-1, 2) * 16).astype(np.int32), 1, lineType=cv2.LINE_8, shift=4)
+    return out.astype(bool)
+
+
+def orbit_centre(poses: list[np.ndarray | None]) -> np.ndarray | None:
+    """The 3D point closest (least squares) to every camera's optical axis: what the camera circles. ``[3]``."""
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    n = 0
+    for T in poses:
+        if T is None:
+            continue
+        c2w = np.linalg.inv(T)
+        c, d = c2w[:3, 3], c2w[:3, 2]
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ c
+        n += 1
+    if n < 3 or np.linalg.cond(A) > 1e8:
+        return None
+    return np.linalg.solve(A, b)
+
+
+def visual_hull(
+    masks: list[np.ndarray | None],
+    poses: list[np.ndarray | None],
+    K: np.ndarray,
+    centre: np.ndarray,
+    radius: float,
+    z_range: tuple[float, float],
+    voxels: int = 72,
+    keep_fraction: float = 0.6,
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Carve a voxel grid with per-frame foreground masks (bool ``[h, w]``, ``K`` for that size).
+
+    The grid spans ``centre.xy +- radius`` and ``z_range`` (cube frame, cm). A voxel is kept when it
+    projects into the mask in at least ``keep_fraction`` of the frames that see it (and it is seen by
+    at least 3 frames); the tolerance absorbs occlusion by the pot and pose errors. Returns
+    ``(occupied bool [X, Y, Z], origin [3], voxel size)``.
+    """
+    vs = 2 * radius / voxels
+    nz = max(2, int(np.ceil((z_range[1] - z_range[0]) / vs)))
+    origin = np.array([centre[0] - radius, centre[1] - radius, z_range[0]]) + vs / 2
+    gi, gj, gk = np.meshgrid(np.arange(voxels), np.arange(voxels), np.arange(nz), indexing="ij")
+    idx = np.stack([gi.ravel(), gj.ravel(), gk.ravel()], 1)  # [V, 3]
+    pts = origin + idx * vs  # [V, 3]
+    seen = np.zeros(len(pts), np.int32)
+    hit = np.zeros(len(pts), np.int32)
+    active = np.arange(len(pts))
+    order = [i for i in range(len(masks)) if masks[i] is not None and poses[i] is not None]
+    order = [order[i] for i in np.random.default_rng(0).permutation(len(order))]
+    for step, fi in enumerate(order):
+        m = masks[fi]
+        h, w = m.shape
+        uv, z = project(pts[active], poses[fi], K)
+        u = np.round(uv[:, 0]).astype(np.int64)
+        v = np.round(uv[:, 1]).astype(np.int64)
+        inside = (z > 1e-3) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        ai = active[inside]
+        seen[ai] += 1
+        hit[ai] += m[v[inside], u[inside]]
+        if step >= 8 and step % 4 == 0:  # drop voxels that can no longer reach the keep fraction
+            s = seen[active]
+            miss = s - hit[active]
+            remaining = len(order) - step - 1
+            ok = (hit[active] + remaining) >= keep_fraction * (s + remaining)
+            ok &= ~((s >= 8) & (miss > (1 - keep_fraction) * (s + remaining) + 1))
+            active = active[ok]
+    occ = (seen >= 3) & (hit >= keep_fraction * np.maximum(seen, 1))
+    return occ.reshape(voxels, voxels, nz), origin, vs
+
+
+def plant_component(
+    occ: np.ndarray, origin: np.ndarray, vs: float, axis_xy: np.ndarray, axis_radius: float, gap: float
+) -> np.ndarray:
+    """The plant in a carved grid: components near the orbit axis plus those within ``gap`` cm of them.
+
+    Green objects elsewhere in the room are separate components away from the axis and are dropped.
+    Returns bool ``[X, Y, Z]``.
+    """
+    from scipy import ndimage
+
+    lab, n = ndimage.label(occ, structure=np.ones((3, 3, 3)))
+    if n == 0:
+        return occ
+    X, Y, _ = occ.shape
+    xs = origin[0] + np.arange(X) * vs
+    ys = origin[1] + np.arange(Y) * vs
+    d2 = (xs[:, None] - axis_xy[0]) ** 2 + (ys[None, :] - axis_xy[1]) ** 2  # [X, Y]
+    near_axis = np.broadcast_to((d2 <= axis_radius**2)[:, :, None], occ.shape)
+    sizes = ndimage.sum_labels(np.ones_like(lab), lab, index=np.arange(1, n + 1))
+    near = np.unique(lab[near_axis & occ])
+    near = near[near > 0]
+    if len(near) == 0:
+        # nothing on the axis: take the largest component closest to it
+        com = ndimage.center_of_mass(occ, lab, index=np.arange(1, n + 1))
+        dist = [np.hypot(origin[0] + c[0] * vs - axis_xy[0], origin[1] + c[1] * vs - axis_xy[1]) for c in com]
+        near = np.array([1 + int(np.argmin(np.asarray(dist) - 1e-3 * sizes))])
+    keep = np.isin(lab, near)
+    r = max(1, int(round(gap / vs)))
+    struct = ndimage.generate_binary_structure(3, 1)
+    while True:
+        grown = ndimage.binary_dilation(keep, structure=struct, iterations=r)
+        add = np.unique(lab[grown & occ & ~keep])
+        add = add[add > 0]
+        if len(add) == 0:
+            break
+        keep |= np.isin(lab, add)
+    return keep

@@ -1,0 +1,76 @@
+"""Mask overlay contact sheet: a grid of frames with the background dimmed and the mask outlined.
+
+Example:
+    >>> from plantsplat.segment.preview import contact_sheet
+    >>> sheet = contact_sheet(["ws/images/frame_00000.png"], ["ws/masks/frame_00000.png"])
+    >>> sheet.dtype, sheet.ndim
+    (dtype('uint8'), 3)
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+
+import numpy as np
+
+from plantsplat.io import read_image
+
+
+def overlay(rgb: np.ndarray, mask: np.ndarray, excluded: bool = False) -> np.ndarray:
+    """Frame ``[H, W, 3]`` with the background dimmed and tinted and the mask's outline drawn."""
+    import cv2
+
+    m = mask > 0 if mask.dtype != bool else mask
+    out = rgb.astype(np.float32)
+    tint = np.array([40, 40, 120], np.float32)  # dim bluish background
+    out[~m] = 0.35 * out[~m] + 0.65 * tint
+    out = np.clip(out, 0, 255).astype(np.uint8)
+    contours, _ = cv2.findContours(m.astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+    t = max(1, round(max(rgb.shape[:2]) / 400))
+    cv2.drawContours(out, contours, -1, (255, 230, 0), t, lineType=cv2.LINE_AA)
+    if excluded:
+        cv2.line(out, (0, 0), (out.shape[1] - 1, out.shape[0] - 1), (255, 0, 0), 2 * t)
+    return out
+
+
+def contact_sheet(
+    images: Sequence[str | os.PathLike],
+    masks: Sequence[str | os.PathLike | np.ndarray],
+    labels: Sequence[str] | None = None,
+    excluded: Sequence[bool] | None = None,
+    max_tiles: int = 16,
+    tile_height: int = 320,
+    columns: int = 4,
+) -> np.ndarray:
+    """A contact sheet of up to ``max_tiles`` frames spread over the capture, masks overlaid.
+
+    Returns an RGB uint8 image ``[rows * tile_height (+ labels), columns * tile_width, 3]``.
+    """
+    import cv2
+
+    n = len(images)
+    if n == 0:
+        raise ValueError("no images for the contact sheet")
+    pick = np.unique(np.linspace(0, n - 1, min(max_tiles, n)).round().astype(int))
+    tiles = []
+    for k in pick:
+        rgb = read_image(images[k])
+        mk = masks[k]
+        m = mk if isinstance(mk, np.ndarray) else read_image(mk, mode="gray")
+        ov = overlay(rgb, m > 0, bool(excluded[k]) if excluded is not None else False)
+        h, w = ov.shape[:2]
+        tw = max(1, round(w * tile_height / h))
+        tile = cv2.resize(ov, (tw, tile_height), interpolation=cv2.INTER_AREA)
+        text = labels[k] if labels is not None else str(k)
+        cv2.rectangle(tile, (0, 0), (tw, 18), (0, 0, 0), -1)
+        cv2.putText(tile, text, (4, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1, cv2.LINE_AA)
+        tiles.append(tile)
+    tw = max(t.shape[1] for t in tiles)
+    tiles = [np.pad(t, ((0, 0), (0, tw - t.shape[1]), (0, 0))) for t in tiles]
+    cols = min(columns, len(tiles))
+    rows = -(-len(tiles) // cols)
+    blank = np.zeros_like(tiles[0])
+    tiles += [blank] * (rows * cols - len(tiles))
+    grid = [np.concatenate(tiles[r * cols:(r + 1) * cols], axis=1) for r in range(rows)]
+    return np.concatenate(grid, axis=0)

@@ -1,0 +1,161 @@
+"""SAM-2 backend: SAM-2's video predictor, prompted from the classic result, propagated over the frames.
+
+The classic segmenter runs first; on key frames (every ``key_every``-th frame where it found the
+object) the plant and the cube each get a box prompt (the bounding box of the classic mask) plus
+positive points at the interior's most central pixels. SAM-2 then propagates both objects through
+the whole frame sequence (its memory attention carries the masks between the prompts), and the
+final foreground is the union of the two objects.
+
+Uses only SAM-2's documented video API (``build_sam2_video_predictor``, ``init_state`` on a folder
+of ``<index>.jpg`` frames, ``add_new_points_or_box``, ``propagate_in_video``). The video path of
+the ``sam2`` package does not import torchvision, so it runs with the CPU build of torch.
+
+Example:
+    >>> masks, info = sam2_segment(paths, classic_parts, Path("sam2.1_hiera_tiny.pt"),
+    ...                            "configs/sam2.1/sam2.1_hiera_t.yaml")   # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import re
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from plantsplat.errors import PlantsplatError, UsageError
+from plantsplat.io import read_image
+from plantsplat.log import get_logger, make_progress
+
+log = get_logger(__name__)
+
+INSTALL_HINT = (
+    "SAM2_BUILD_CUDA=0 pip install -c constraints.txt --no-deps --no-build-isolation sam2==1.1.0 "
+    "&& pip install -c constraints.txt hydra-core iopath tqdm pillow"
+)
+_SIZES = {"tiny": "t", "small": "s", "base_plus": "b+", "base-plus": "b+", "b+": "b+", "large": "l",
+          "t": "t", "s": "s", "l": "l"}
+
+
+def check_sam2(checkpoint: str | os.PathLike | None) -> Path:
+    """Check that ``sam2`` is importable and the checkpoint file exists; return its path.
+
+    Raises a one-line :class:`PlantsplatError` saying what to install or pass.
+    """
+    if importlib.util.find_spec("sam2") is None:
+        raise PlantsplatError(f"the sam2 backend needs the `sam2` package; install it with: {INSTALL_HINT} "
+                              "(or use --backend classic)")
+    if checkpoint is None:
+        raise UsageError("--backend sam2 needs --sam2-checkpoint PATH (a SAM-2 checkpoint such as "
+                         "sam2.1_hiera_tiny.pt from github.com/facebookresearch/sam2)")
+    path = Path(checkpoint)
+    if not path.is_file():
+        raise PlantsplatError(f"{path}: SAM-2 checkpoint not found; download it (e.g. sam2.1_hiera_tiny.pt) "
+                              "on a connected machine and pass its path to --sam2-checkpoint")
+    return path
+
+
+def resolve_config(checkpoint: Path, config: str | None) -> str:
+    """The SAM-2 config name for a checkpoint: ``config`` when given, else guessed from the file name.
+
+    Example:
+        >>> resolve_config(Path("sam2.1_hiera_tiny.pt"), None)
+        'configs/sam2.1/sam2.1_hiera_t.yaml'
+    """
+    if config:
+        return config
+    name = checkpoint.name.lower()
+    m = re.search(r"(sam2(?:\.1)?)_hiera_(tiny|small|base_plus|base-plus|large|b\+|t|s|l)\b", name)
+    if not m:
+        raise UsageError(f"{checkpoint}: cannot tell the SAM-2 model from the file name; pass --sam2-config "
+                         "(e.g. configs/sam2.1/sam2.1_hiera_t.yaml)")
+    version, size = m.group(1), _SIZES[m.group(2)]
+    return f"configs/{version}/{version}_hiera_{size}.yaml"
+
+
+def _prompt(mask: np.ndarray, n_points: int = 3) -> tuple[np.ndarray, np.ndarray] | None:
+    """Box ``[4]`` (x0, y0, x1, y1) and positive points ``[n, 2]`` (x, y) from a bool mask ``[H, W]``."""
+    import cv2
+
+    ys, xs = np.nonzero(mask)
+    if len(xs) < 20:
+        return None
+    box = np.array([xs.min(), ys.min(), xs.max(), ys.max()], np.float32)
+    # points: the most interior pixels of the largest pieces (distance-transform maxima)
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    order = 1 + np.argsort(-stats[1:, cv2.CC_STAT_AREA])
+    pts = []
+    for k in order[:n_points]:
+        dt = cv2.distanceTransform((lab == k).astype(np.uint8), cv2.DIST_L2, 3)
+        y, x = np.unravel_index(int(np.argmax(dt)), dt.shape)
+        pts.append((x, y))
+    return box, np.array(pts, np.float32)
+
+
+def sam2_segment(
+    image_paths: list[Path],
+    classic_parts: list[tuple[np.ndarray, np.ndarray]],
+    checkpoint: Path,
+    config: str,
+    device: str | None = None,
+    key_every: int = 10,
+    image_size: int | None = None,
+) -> tuple[list[np.ndarray], dict[str, Any]]:
+    """Run SAM-2's video predictor over the frames, prompted from the classic ``(plant, cube)`` masks.
+
+    ``image_size`` overrides the model's input size (SAM-2 is trained at 1024; smaller sizes only
+    make sense for tests of the plumbing). Returns per-frame bool masks ``[H, W]`` (plant or cube)
+    and facts for ``segment.json``.
+    """
+    import cv2
+    import torch
+    from sam2.build_sam import build_sam2_video_predictor
+
+    if device is None:
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    n = len(image_paths)
+    try:
+        extra = [f"++model.image_size={int(image_size)}"] if image_size else []
+        predictor = build_sam2_video_predictor(config, str(checkpoint), device=device, hydra_overrides_extra=extra)
+    except Exception as exc:  # wrong config for the weights, corrupt file, ...
+        raise PlantsplatError(f"{checkpoint}: SAM-2 could not load it with config {config} "
+                              f"({type(exc).__name__}: {str(exc).splitlines()[0][:160] if str(exc) else ''}); "
+                              "check --sam2-config matches the checkpoint") from exc
+    H = W = None
+    with tempfile.TemporaryDirectory(prefix="plantsplat_sam2_") as tmp:
+        for i, p in enumerate(image_paths):  # SAM-2 reads a folder of <index>.jpg frames
+            rgb = read_image(p)
+            H, W = rgb.shape[:2]
+            cv2.imwrite(os.path.join(tmp, f"{i:05d}.jpg"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
+                        [cv2.IMWRITE_JPEG_QUALITY, 95])
+        out = [np.zeros((H, W), bool) for _ in range(n)]
+        prompts = 0
+        with torch.inference_mode():
+            state = predictor.init_state(video_path=tmp, offload_video_to_cpu=True, offload_state_to_cpu=device == "cpu")
+            keys = list(range(0, n, max(1, key_every)))
+            for obj_id, part in ((1, 0), (2, 1)):
+                for k in keys:
+                    pr = _prompt(classic_parts[k][part])
+                    if pr is None:
+                        continue
+                    box, pts = pr
+                    predictor.add_new_points_or_box(state, frame_idx=k, obj_id=obj_id, points=pts,
+                                                    labels=np.ones(len(pts), np.int32), box=box)
+                    prompts += 1
+            if prompts == 0:
+                raise PlantsplatError(f"{image_paths[0].parent}: the classic segmenter found nothing to prompt "
+                                      "SAM-2 with; check the capture")
+            with make_progress() as bar:
+                task = bar.add_task("segment: SAM-2 propagation", total=n, info="")
+                for frame_idx, _obj_ids, logits in predictor.propagate_in_video(state):
+                    out[frame_idx] = (logits > 0.0).any(dim=0).reshape(H, W).cpu().numpy()
+                    bar.advance(task)
+                first = min(k for k in keys)
+                if first > 0:  # frames before the first prompt
+                    for frame_idx, _obj_ids, logits in predictor.propagate_in_video(state, start_frame_idx=first,
+                                                                                    reverse=True):
+                        out[frame_idx] = (logits > 0.0).any(dim=0).reshape(H, W).cpu().numpy()
+    return out, {"key_every": key_every, "prompts": prompts, "device": device, "image_size": image_size or "model default"}
