@@ -214,7 +214,12 @@ def rasterize(
 
     if means.device.type != "cpu":
         raise RasterInputError(f"rasterize: backend {backend!r} needs CPU tensors, got {means.device}")
-    means2d, conics, depths, radii2 = project_gaussians(
+    # the reference uses the autograd projection, the cpu backend its numba twin (tested against it)
+    if backend == "reference":
+        project = project_gaussians
+    else:
+        from .cpu_projection import project_cpu as project
+    means2d, conics, depths, radii2 = project(
         means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d
     )  # [N, 2], [N, 3], [N], [N, 2]
     if sh_degree is not None:
