@@ -195,9 +195,9 @@ class ClassicSegmenter:
     def _roi_3d(self, i: int, ctx: CaptureContext) -> np.ndarray | None:
         import cv2
 
-        T = ctx.poses[i]
-        if T is None or ctx.hull_points is None:
+        if ctx.hull_points is None or not ctx.poses or ctx.poses[i] is None:
             return None
+        T = ctx.poses[i]
         s = self.s
         h, w = self._smalls[i].shape
         uv, z = geo.project(ctx.hull_points, T, self._Ks)

@@ -1,0 +1,163 @@
+"""Frame extraction: rotation, sharpest-per-stretch choice, duplicates, folders, resume, bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from plantsplat.errors import PlantsplatError
+from plantsplat.frames import extract_frames, sharpness, working_size
+from plantsplat.workspace import Workspace
+
+
+def _pattern(i: int, w: int, h: int) -> np.ndarray:
+    """A textured frame that changes with i; a white band marks the top-left (display) corner."""
+    rng = np.random.default_rng(i)
+    img = cv2.resize((rng.random((h // 8, w // 8, 3)) * 255).astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST)
+    img[: h // 6, : w // 6] = 255
+    return img
+
+
+def _write_video(path: Path, frames: list[np.ndarray], rotation: float = 0.0, fps: int = 24) -> Path:
+    import av
+
+    h, w = frames[0].shape[:2]
+    with av.open(str(path), "w") as c:
+        s = c.add_stream("libx264", rate=fps)
+        s.width, s.height, s.pix_fmt = w, h, "yuv420p"
+        s.options = {"preset": "ultrafast", "crf": "12"}
+        if rotation:
+            s.set_display_rotation(rotation)
+        for f in frames:
+            for p in s.encode(__import__("av").VideoFrame.from_ndarray(f, format="rgb24")):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+    return path
+
+
+def test_working_size_and_sharpness():
+    assert working_size(1080, 1920, 960) == (540, 960)
+    assert working_size(400, 300, 960) == (400, 300)  # never upscaled
+    sharp = _pattern(0, 64, 64)[..., 0]
+    assert sharpness(sharp) > 5 * sharpness(cv2.GaussianBlur(sharp, (0, 0), 3))
+
+
+def test_video_rotation_and_spread(tmp_path):
+    # stored landscape 160x96, displayed rotated 90 deg clockwise (a phone held upright)
+    frames = [_pattern(i, 160, 96) for i in range(30)]
+    video = _write_video(tmp_path / "v.mp4", frames, rotation=-90)
+    ws = Workspace(tmp_path / "ws")
+    info = extract_frames(video, ws, num=10, max_size=80)
+    assert info["kind"] == "video" and info["rotation"] == 270
+    assert info["working_size"] == [48, 80]  # portrait
+    names = ws.image_names()
+    assert len(names) == 10 == len(info["frames"])
+    img = cv2.imread(str(ws.images_dir / names[0]))
+    assert img.shape[:2] == (80, 48)
+    # the white band (stored top-left) is displayed at the top-right after a clockwise turn
+    expected = np.rot90(frames[info["frames"][0]["source_index"]], k=-1)
+    expected = cv2.resize(expected, (48, 80), interpolation=cv2.INTER_AREA)
+    got = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    assert np.mean(np.abs(got.astype(int) - expected.astype(int))) < 12
+    assert got[:6, -6:].mean() > 200 and got[-6:, :6].mean() < 250
+    idx = [f["source_index"] for f in info["frames"]]
+    assert idx == sorted(idx) and idx[0] < 3 and idx[-1] >= 27  # spread over the whole capture
+    data = json.loads(ws.frames_json.read_text())
+    assert data["source_size"] == [160, 96] and data["total_source_frames"] == 30
+
+
+def test_picks_sharpest_frame_of_each_stretch(tmp_path):
+    frames = []
+    for i in range(40):
+        f = _pattern(i, 128, 128)
+        if i % 5 != 2:  # only the third frame of each stretch of 5 is sharp
+            f = cv2.GaussianBlur(f, (0, 0), 2.5)
+        frames.append(f)
+    video = _write_video(tmp_path / "v.mp4", frames)
+    info = extract_frames(video, tmp_path / "ws", num=8, max_size=128)
+    assert [f["source_index"] for f in info["frames"]] == [5 * k + 2 for k in range(8)]
+
+
+def test_drops_blurred_and_duplicate_frames(tmp_path):
+    frames = [_pattern(i, 96, 96) for i in range(12)]
+    frames[4] = cv2.GaussianBlur(frames[4], (0, 0), 6)  # a whole stretch blurred
+    frames[8] = frames[7].copy()  # the camera stood still
+    d = tmp_path / "imgs"
+    d.mkdir()
+    for i, f in enumerate(frames):
+        cv2.imwrite(str(d / f"img_{i}.png"), f)
+    info = extract_frames(d, tmp_path / "ws", num=12, min_frames=4)
+    kept = [f["source_index"] for f in info["frames"]]
+    dropped = {x["source_index"]: x["reason"] for x in info["dropped"]}
+    assert 4 not in kept and "blurred" in dropped[4]
+    assert 8 not in kept and "duplicate" in dropped[8]
+    assert len(kept) == 10
+    assert info["frames"][0]["source_name"] == "img_0.png"  # natural order: img_2 before img_10
+
+
+def test_folder_natural_order_unreadable_and_sizes(tmp_path):
+    d = tmp_path / "imgs"
+    d.mkdir()
+    for i in (1, 2, 10):
+        cv2.imwrite(str(d / f"p{i}.jpg"), _pattern(i, 64, 48))
+    (d / "p3.jpg").write_bytes(b"not a jpeg")
+    info = extract_frames(d, tmp_path / "ws", num=10, min_frames=2)
+    assert [f["source_name"] for f in info["frames"]] == ["p1.jpg", "p2.jpg", "p10.jpg"]
+    assert info["unreadable"] == ["p3.jpg"]
+    cv2.imwrite(str(d / "p11.jpg"), _pattern(11, 48, 64))
+    with pytest.raises(PlantsplatError, match="p11.jpg: size 48x64 differs"):
+        extract_frames(d, tmp_path / "ws2", num=10, min_frames=2)
+
+
+def test_resume_and_protection(tmp_path):
+    video = _write_video(tmp_path / "v.mp4", [_pattern(i, 64, 64) for i in range(20)])
+    ws = Workspace(tmp_path / "ws")
+    extract_frames(video, ws, num=10)
+    first = ws.images_dir / "frame_00000.png"
+    stamp = first.stat().st_mtime_ns
+    extract_frames(video, ws, num=10)  # same input and settings: nothing redone
+    assert first.stat().st_mtime_ns == stamp
+    with pytest.raises(PlantsplatError, match="--force"):
+        extract_frames(video, ws, num=9)  # different settings, no --force: refuse, keep the images
+    assert len(ws.image_names()) == 10 and first.stat().st_mtime_ns == stamp
+    info = extract_frames(video, ws, num=9, force=True)
+    assert len(ws.image_names()) == 9 == len(info["frames"])  # stale frame_00009.png removed
+
+
+@pytest.mark.parametrize("kind", ["missing", "empty_video", "garbage_video", "empty_folder", "too_few"])
+def test_bad_input(tmp_path, kind):
+    ws = Workspace(tmp_path / "ws")
+    if kind == "missing":
+        src, msg = tmp_path / "nope.mp4", "no such file"
+    elif kind == "empty_video":
+        src, msg = tmp_path / "e.mp4", "e.mp4"
+        src.write_bytes(b"")
+    elif kind == "garbage_video":
+        src, msg = tmp_path / "g.mov", "g.mov"
+        src.write_bytes(np.random.default_rng(0).bytes(5000))
+    elif kind == "empty_folder":
+        src, msg = tmp_path / "d", "no images found"
+        src.mkdir()
+        (src / "notes.txt").write_text("x")
+    else:
+        src, msg = _write_video(tmp_path / "short.mp4", [_pattern(i, 64, 64) for i in range(3)]), "only 3 usable frames"
+    with pytest.raises(PlantsplatError, match=msg) as exc:
+        extract_frames(src, ws, num=10)
+    assert "\n" not in str(exc.value)
+    assert not ws.frames_json.exists()
+
+
+def test_cli_frames(tmp_path, capsys):
+    from plantsplat.cli import main
+
+    video = _write_video(tmp_path / "v.mp4", [_pattern(i, 64, 96) for i in range(16)])
+    assert main(["frames", str(video), "--out", str(tmp_path / "ws"), "--num", "8"]) == 0
+    assert len(Workspace(tmp_path / "ws").image_names()) == 8
+    assert main(["frames", str(tmp_path / "missing.mp4"), "--out", str(tmp_path / "ws2")]) == 1
+    err = capsys.readouterr().err
+    assert "missing.mp4" in err and "Traceback" not in err
