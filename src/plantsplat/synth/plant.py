@@ -239,10 +239,25 @@ def _ok_above_pot(pts: np.ndarray, pot: Pot, margin: float = 0.3) -> bool:
     """True when no point is inside the pot wall/rim region or below the platform."""
     r = np.linalg.norm(pts[:, :2], axis=1)
     near_wall = (r > pot.top_radius - 0.8) & (r < pot.top_radius + pot.lip + 0.8)
-    return bool(np.all(pts[:, 2] > 0.3) and np.all(pts[near_wall, 2] > pot.rim_z + margin))
+    outside = r >= pot.top_radius + pot.lip + 0.8
+    return bool(np.all(pts[:, 2] > 0.3) and np.all(pts[near_wall, 2] > pot.rim_z + margin)
+                and np.all(pts[outside, 2] > pot.rim_z - 2.0))
 
 
-def _draw_plant(rng: np.random.Generator, pot: Pot, avoid_azimuth: float | None):
+def _hits_pot(pts: np.ndarray, pot: Pot, margin: float = 0.15) -> bool:
+    """True when points lie inside the pot's wall/lip, below the soil inside the pot, or below the platform."""
+    r = np.linalg.norm(pts[:, :2], axis=1)
+    z = pts[:, 2]
+    outer = np.where(z > pot.rim_z - 1.2, pot.top_radius + pot.lip, np.interp(z, [0, pot.height],
+                                                                               [pot.bottom_radius, pot.top_radius]))
+    inner = np.interp(z, [0, pot.height], [pot.bottom_radius, pot.top_radius]) - pot.wall
+    below_rim = z < pot.rim_z + margin
+    in_wall = below_rim & (r > inner - margin) & (r < outer + margin)
+    in_soil = (r <= inner) & (z < pot.soil_z)
+    return bool(np.any(in_wall) or np.any(in_soil) or np.any(z < 0.1))
+
+
+def _draw_plant(rng: np.random.Generator, pot: Pot, avoid_azimuth: float | None, obstacle=None):
     soil = pot.soil_z
     crown = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), soil])
     crown_r = rng.uniform(1.3, 2.4)
@@ -266,7 +281,8 @@ def _draw_plant(rng: np.random.Generator, pot: Pot, avoid_azimuth: float | None)
         for _ in range(10):
             parts, curve, bv, info = _leaf(rng, i, crown, crown_r, azim, L, elev, leaflet_len, pot, tint)
             far = np.linalg.norm(curve[:, :2], axis=1) > pot.top_radius - 0.8
-            if _ok_above_pot(bv, pot) and _ok_above_pot(curve[far], pot):
+            if _ok_above_pot(bv, pot) and _ok_above_pot(curve[far], pot) and not (
+                    obstacle is not None and obstacle(np.concatenate([bv, curve]))):
                 break
             elev = min(elev + np.radians(6), np.radians(85))
         meshes += parts
@@ -279,39 +295,41 @@ def _draw_plant(rng: np.random.Generator, pot: Pot, avoid_azimuth: float | None)
     n_fruits = int(rng.integers(1, 11))
     fruits = []
     for j in range(n_fruits):
-        for _ in range(50):
-            az = rng.uniform(0, 2 * np.pi)
-            if avoid_azimuth is None or abs((az - avoid_azimuth + np.pi) % (2 * np.pi) - np.pi) > np.radians(40):
-                break
-        h = np.array([np.cos(az), np.sin(az), 0.0])
         Lf = rng.uniform(2.2, 4.5) * (0.8 + 0.25 * scale)
         Rf = Lf * rng.uniform(0.36, 0.48)
         ripe = bool(rng.random() < 0.75)
         hanging = bool(rng.random() < 0.5)
-        base = crown + Z * 0.5 + h * crown_r * 0.4
-        if hanging:
-            r_out = pot.top_radius + pot.lip + Rf + rng.uniform(0.3, 1.5)
-            drop = rng.uniform(1.0, 6.0)
-            up = pot.rim_z + rng.uniform(3, 8)
-            end = h * r_out + Z * (pot.rim_z - drop)
-            end[:2] += crown[:2] * 0.0
-            P = np.stack([base, base * [1, 1, 0] + Z * up + h * 0.3 * pot.top_radius,
-                          h * (r_out + 1.0) + Z * (up - 0.5), end])
-            axis = _unit(-Z + h * rng.uniform(0.0, 0.25) + rng.normal(0, 0.08, 3))
-        else:
-            rr = rng.uniform(0.25, 0.6) * pot.top_radius
-            end = h * rr + Z * (soil + Lf + rng.uniform(1.0, 6.0))
-            P = np.stack([base, base + Z * (end[2] - base[2] + 2.5) + h * rr * 0.3, end + Z * 1.0])
-            axis = _unit(-Z + rng.normal(0, 0.35, 3) * [1, 1, 0])
-        for _ in range(10):
-            curve = _bezier(P, 16)
-            far = np.linalg.norm(curve[:, :2], axis=1) > pot.top_radius - 0.8
-            if _ok_above_pot(curve[far & (np.arange(16) < 14)], pot, 0.2):
+        for _ in range(40):
+            az = rng.uniform(0, 2 * np.pi)
+            if avoid_azimuth is not None and abs((az - avoid_azimuth + np.pi) % (2 * np.pi) - np.pi) < np.radians(40):
+                continue
+            h = np.array([np.cos(az), np.sin(az), 0.0])
+            base = crown + Z * 0.5 + h * crown_r * 0.4
+            if hanging:
+                r_out = pot.top_radius + pot.lip + Rf + rng.uniform(0.3, 1.5)
+                up = pot.rim_z + rng.uniform(3, 8)
+                end = h * r_out + Z * (pot.rim_z - rng.uniform(1.0, 6.0))
+                P = np.stack([base, base * [1, 1, 0] + Z * up + h * 0.3 * pot.top_radius,
+                              h * (r_out + 1.0) + Z * (up - 0.5), end])
+                axis = _unit(-Z + h * rng.uniform(0.0, 0.25) + rng.normal(0, 0.08, 3))
+            else:
+                rr = rng.uniform(0.25, 0.6) * pot.top_radius
+                end = h * rr + Z * (soil + Lf + rng.uniform(1.0, 6.0))
+                P = np.stack([base, base + Z * (end[2] - base[2] + 2.5) + h * rr * 0.3, end + Z * 1.0])
+                axis = _unit(-Z + rng.normal(0, 0.35, 3) * [1, 1, 0])
+            for _ in range(10):
+                curve = _bezier(P, 16)
+                far = np.linalg.norm(curve[:, :2], axis=1) > pot.top_radius - 0.8
+                if _ok_above_pot(curve[far & (np.arange(16) < 14)], pot, 0.2):
+                    break
+                P[1:-1, 2] += 1.0
+            parts = _fruit(rng, j, curve[-1], axis, Lf, Rf, ripe)
+            body = np.concatenate([m.v for m in parts])
+            if not _hits_pot(body, pot) and not (obstacle is not None and obstacle(np.concatenate([body, curve]))):
                 break
-            P[1:-1, 2] += 1.0
         meshes.append(tube_mesh(curve, np.linspace(0.12, 0.08, 16), 5, (0.3, 0.42, 0.15), uv_scale=0.05,
                                 layer=T.WHITE, cls=PEDUNCLE, instance=j))
-        meshes += _fruit(rng, j, curve[-1], axis, Lf, Rf, ripe)
+        meshes += parts
         fruits.append(dict(attach=curve[-1].tolist(), tip=(curve[-1] + axis * Lf).tolist(), length_cm=float(Lf),
                            radius_cm=float(Rf), ripe=ripe, hanging_over_rim=hanging,
                            azimuth_deg=float(np.degrees(az) % 360)))
@@ -339,16 +357,18 @@ def plant_vertices(meshes: list[Mesh]) -> np.ndarray:
     return np.concatenate([m.v for m in meshes])
 
 
-def make_plant(rng: np.random.Generator, pot: Pot, avoid_azimuth: float | None = None, max_tries: int = 30):
+def make_plant(rng: np.random.Generator, pot: Pot, avoid_azimuth: float | None = None, obstacle=None,
+               max_tries: int = 30):
     """Draw a plant whose height and width1 fall in the target ranges. Returns ``(meshes, info)``.
 
-    ``avoid_azimuth`` (radians) keeps hanging fruit away from the cube's side of the pot.
+    ``avoid_azimuth`` (radians) keeps hanging fruit away from the cube's side of the pot;
+    ``obstacle(points [N, 3]) -> bool`` says whether points collide with something else (the cube).
     """
     from plantsplat.traitdefs import pca_widths, plant_height
 
     best = None
     for attempt in range(max_tries):
-        meshes, info = _draw_plant(rng, pot, avoid_azimuth)
+        meshes, info = _draw_plant(rng, pot, avoid_azimuth, obstacle)
         v = plant_vertices(meshes)
         hgt, (w1, _) = plant_height(v), pca_widths(v)
         miss = max(0, HEIGHT_RANGE[0] - hgt, hgt - HEIGHT_RANGE[1]) + max(0, WIDTH1_RANGE[0] - w1, w1 - WIDTH1_RANGE[1])

@@ -203,7 +203,13 @@ def make_scene(rng: np.random.Generator, cube: CubeSpec = CubeSpec()) -> dict:
     T_wc = np.eye(4)
     T_wc[:3, :3] = rot_z(yaw)
     T_wc[:3, 3] = [cube_d * np.cos(cube_az), cube_d * np.sin(cube_az), 0.0]
-    plant_meshes, plant_info = make_plant(rng, pot, avoid_azimuth=cube_az)
+
+    def hits_cube(pts: np.ndarray, margin: float = 0.5) -> bool:
+        pc = (pts - T_wc[:3, 3]) @ T_wc[:3, :3]  # cube frame
+        h = cube.size / 2 + margin
+        return bool(np.any((np.abs(pc[:, 0]) < h) & (np.abs(pc[:, 1]) < h) & (pc[:, 2] < cube.size + margin)))
+
+    plant_meshes, plant_info = make_plant(rng, pot, avoid_azimuth=cube_az, obstacle=hits_cube)
     # platform (a round bin) big enough for pot and cube
     plat_r = max(cube_d + cube.size * 0.75, pot.top_radius + 10) + rng.uniform(4, 15)
     plat_h = rng.uniform(35, 80)
