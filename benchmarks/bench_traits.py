@@ -65,8 +65,7 @@ def machine_info() -> dict:
 
 def synth_scene(seed: int, work: Path) -> tuple[dict, dict]:
     """Ground-truth scene cloud and ground_truth.json of synth seed ``seed`` (tiny render, GT is exact)."""
-    from plantsplat.synth import SynthConfig
-    from plantsplat.synth.generate import generate
+    from plantsplat.synth import SynthConfig, generate
     from plantsplat.synth.groundtruth import read_ply
 
     out = work / f"seed_{seed:03d}"

@@ -74,17 +74,21 @@ def dbscan(
     min_points: int = 10,
     max_points: int = 250_000,
     seed: int = 0,
+    eps_reference: np.ndarray | None = None,
 ) -> tuple[np.ndarray, float]:
     """Cluster ``points [N, 3]`` with Open3D's DBSCAN. Returns ``(labels [N] int, eps)``; -1 is noise.
 
-    Labels are renumbered by decreasing cluster size (0 = largest).
+    Labels are renumbered by decreasing cluster size (0 = largest). ``eps_reference`` (``[M, 3]``,
+    default ``points``) is the cloud whose point spacing sets the automatic radius (the Gaussian
+    centres when ``points`` also holds extent samples).
     """
     import open3d as o3d
     from scipy.spatial import cKDTree
 
     pts = np.asarray(points, dtype=np.float64)  # [N, 3]
     if eps is None:
-        eps = choose_eps(pts, calibrated, min_points)
+        ref = pts if eps_reference is None else np.asarray(eps_reference, dtype=np.float64)
+        eps = choose_eps(ref, calibrated, min_points)
     rng = np.random.default_rng(seed)
     if len(pts) > max_points:
         sub = np.sort(rng.choice(len(pts), size=max_points, replace=False))

@@ -302,7 +302,8 @@ def measure_traits(
 
     # 1. clustering
     labels, eps = dbscan(pts, calibrated=calibrated, eps=s.eps, min_points=s.min_points,
-                         max_points=s.max_cluster_points, seed=s.seed)
+                         max_points=s.max_cluster_points, seed=s.seed,
+                         eps_reference=None if centre_mask is None else pts[is_centre])
     timings["dbscan"] = time.perf_counter() - t0
     n_clusters = int(labels.max() + 1)
     log.info("DBSCAN: %d clusters, %d noise points (eps %.3g)", n_clusters, int((labels < 0).sum()), eps)
@@ -446,7 +447,8 @@ def gaussian_extent_points(
     """The centres and the 6 ends of each Gaussian's principal axes at ``k_sigma`` standard deviations.
 
     ``means [N, 3]``, ``scales [N, 3]`` (activated standard deviations), ``quats [N, 4]`` (w, x, y, z).
-    Returns ``[7 N, 3]``: the N centres first, then the 6 N axis ends.
+    Returns ``[7 N, 3]`` in 7 blocks of N: the centres, then each axis end of every Gaussian (so
+    per-Gaussian attributes repeat with ``np.tile(attr, (7, 1))``).
 
     Example:
         >>> p = gaussian_extent_points(np.zeros((1, 3)), np.array([[1.0, 2, 3]]), np.array([[1.0, 0, 0, 0]]), 2.0)
@@ -459,8 +461,9 @@ def gaussian_extent_points(
     q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
     R = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()  # [N, 3, 3], columns = principal axes
     ax = R * (k_sigma * np.asarray(scales, dtype=np.float64))[:, None, :]  # [N, 3, 3] scaled columns
-    ends = np.concatenate([means[:, None, :] + ax.transpose(0, 2, 1), means[:, None, :] - ax.transpose(0, 2, 1)], 1)
-    return np.concatenate([np.asarray(means, np.float64), ends.reshape(-1, 3)])
+    means = np.asarray(means, np.float64)
+    ends = [means + sgn * ax[:, :, j] for j in range(3) for sgn in (1.0, -1.0)]  # 6 x [N, 3]
+    return np.concatenate([means, *ends])  # block k holds point k of every Gaussian
 
 
 def read_splat_extent_cloud(path: str | Path, opacity_min: float, k_sigma: float) -> dict[str, np.ndarray]:
