@@ -1,7 +1,8 @@
 """Slow, obviously correct pure-PyTorch compositing (autograd does the backward).
 
-Every pixel is compared with every visible Gaussian (an ``[H*W, G]`` dense matrix), so use it on
-small scenes only: it is the ground truth the fast ``cpu`` backend is tested against. It applies
+Each tile's pixels are compared with every Gaussian listed for the tile (dense ``[P, G]``
+matrices, one tile at a time), so it is slow and memory-hungry: it is the ground truth the fast
+``cpu`` backend is tested against. It applies
 exactly the rules of gsplat's tile rasterizer:
 
 - Gaussians are composited front to back in order of camera depth;
@@ -69,25 +70,39 @@ def composite_reference(
     op, z = opacities[idx], depths[idx]  # [G], [G]
     box = tile_boxes(m, radii[idx], tile_size, tiles_x, tiles_y)  # [G, 4]
 
-    ys, xs = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
-    px = (xs.reshape(-1, 1) + 0.5).to(dtype)  # [P, 1]
-    py = (ys.reshape(-1, 1) + 0.5).to(dtype)  # [P, 1]
-    tx = xs.reshape(-1, 1) // tile_size  # [P, 1]
-    ty = ys.reshape(-1, 1) // tile_size  # [P, 1]
-    in_box = (tx >= box[:, 0]) & (tx < box[:, 2]) & (ty >= box[:, 1]) & (ty < box[:, 3])  # [P, G]
+    # One tile at a time (results are identical to one dense [H*W, G] matrix, which would not fit
+    # in memory for large scenes): only the Gaussians whose tile box holds the tile are composited.
+    parts_idx, parts_c, parts_a, parts_d = [], [], [], []
+    for ty in range(tiles_y):
+        for tx in range(tiles_x):
+            sel = torch.nonzero((box[:, 0] <= tx) & (tx < box[:, 2]) & (box[:, 1] <= ty) & (ty < box[:, 3])).flatten()
+            y0, x0 = ty * tile_size, tx * tile_size
+            ys, xs = torch.meshgrid(torch.arange(y0, min(y0 + tile_size, height)),
+                                    torch.arange(x0, min(x0 + tile_size, width)), indexing="ij")
+            ys, xs = ys.reshape(-1, 1), xs.reshape(-1, 1)  # [P, 1]
+            parts_idx.append((ys * width + xs).flatten())
+            c, a, d = _composite_pixels(xs.to(dtype) + 0.5, ys.to(dtype) + 0.5, m[sel], con[sel], col[sel],
+                                        op[sel], z[sel])
+            parts_c.append(c)
+            parts_a.append(a)
+            parts_d.append(d)
+    idx = torch.cat(parts_idx)  # [H*W] pixel index of each row below
+    color = torch.zeros(height * width, 3, dtype=dtype).index_copy(0, idx, torch.cat(parts_c))
+    acc = torch.zeros(height * width, 1, dtype=dtype).index_copy(0, idx, torch.cat(parts_a))
+    depth_sum = torch.zeros(height * width, 1, dtype=dtype).index_copy(0, idx, torch.cat(parts_d))
+    return color.reshape(height, width, 3), acc.reshape(height, width, 1), depth_sum.reshape(height, width, 1)
 
+
+def _composite_pixels(px, py, m, con, col, op, z):
+    """Front-to-back compositing of depth-sorted Gaussians [G] over pixel centres px, py [P, 1]."""
     dx = m[:, 0] - px  # [P, G]
     dy = m[:, 1] - py  # [P, G]
     sigma = 0.5 * (con[:, 0] * dx * dx + con[:, 2] * dy * dy) + con[:, 1] * dx * dy  # [P, G]
     alpha = torch.clamp(op * torch.exp(-sigma), max=0.999)  # [P, G]
-    used = in_box & (sigma >= 0) & (alpha >= ALPHA_THRESHOLD)  # [P, G]
+    used = (sigma >= 0) & (alpha >= ALPHA_THRESHOLD)  # [P, G]
     alpha = torch.where(used, alpha, torch.zeros_like(alpha))
     T_after = torch.cumprod(1.0 - alpha, dim=1)  # [P, G] transmittance after each Gaussian
     T_before = torch.cat([torch.ones_like(T_after[:, :1]), T_after[:, :-1]], dim=1)  # [P, G]
     stopped = torch.cumsum((T_after <= _T_EPS).to(torch.int32), dim=1) > 0  # [P, G]
     w = torch.where(stopped, torch.zeros_like(alpha), alpha * T_before)  # [P, G] blending weights
-
-    color = (w @ col).reshape(height, width, 3)
-    acc = w.sum(dim=1).reshape(height, width, 1)
-    depth_sum = (w @ z[:, None]).reshape(height, width, 1)
-    return color, acc, depth_sum
+    return w @ col, w.sum(dim=1, keepdim=True), w @ z[:, None]
