@@ -57,14 +57,19 @@ def traits_figure(result, path: str | Path, title: str = "", max_points: int = 3
         a = np.zeros(2)
         b = np.zeros(2)
         a[i], b[i] = lo[i], hi[i]
-        mid = proj[:, 1 - i].mean() * 0  # the line runs through the PCA centre
-        a[1 - i] = b[1 - i] = mid
+        # the arrow runs through the PCA centre along its axis
         pa, pb = centre + a @ axes, centre + b @ axes
         ax1.annotate("", xy=pb, xytext=pa, arrowprops={"arrowstyle": "<->", "color": colr, "lw": 2})
         val = t.get("width1_cm" if i == 0 else "width2_cm")
-        ax1.text(*(pb + 0.03 * (pb - pa)), f"{name}\n{val:.1f} cm" if val is not None else name, color=colr,
-                 fontsize=10, ha="center", va="center", fontweight="bold")
+        ax1.text(*(pb + 0.06 * (pb - pa)), f"{name}\n{val:.1f} cm" if val is not None else name, color=colr,
+                 fontsize=10, ha="center", va="center", fontweight="bold",
+                 bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none", "pad": 1.5})
     ax1.plot(*centre, "k+", ms=12)
+    fc = result.fruit_centres
+    if fc is not None and len(fc):
+        ax1.scatter(fc[:, 0], fc[:, 1], s=160, facecolors="none", edgecolors="m", linewidths=1.5,
+                    label=f"counted fruit ({len(fc)})")
+        ax1.legend(loc="lower right", fontsize=8)
     ax1.set_aspect("equal")
     ax1.set_xlabel("x (cm)")
     ax1.set_ylabel("y (cm)")
