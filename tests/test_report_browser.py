@@ -32,7 +32,7 @@ def test_plant_report_viewer_draws_splat_and_points(tmp_path):
     ws = make_synthetic_workspace(tmp_path / "plant", n_gaussians=4000, n_frames=6)
     report = write_report(ws)
     shot = _artifacts(tmp_path) / "report_plant.png"
-    res = open_report(report, screenshot=shot, modes=("points", "splat"), timeout_s=90)
+    res = open_report(report, screenshot=shot, modes=("points", "splat"), timeout_s=90, orbit_frames=3)
     assert res.console_errors == []
     assert res.viewer_state == "ready", res.viewer_error
     assert res.first_content_s is not None
@@ -49,6 +49,7 @@ def test_plant_report_viewer_draws_splat_and_points(tmp_path):
     h, w = img.shape[:2]
     assert abs(xs.mean() / w - 0.5) < 0.2 and abs(ys.mean() / h - 0.5) < 0.25
     assert shot.is_file() and shot.stat().st_size > 10_000
+    assert res.orbit["frames"] == 3 and res.orbit["fps"] > 0
 
 
 def test_batch_and_partial_reports_open_without_errors(tmp_path):

@@ -132,6 +132,7 @@ def _viewer_section(ws: Workspace, parts: _Parts, opts: ReportOptions) -> str:
             n_kept = len(raw) // 32
             blocks.append(H.data_block("splat-data", raw))
             cfg["splat"] = True
+            cfg["splat_count"] = n_kept
             frame_pts = g.means
             stats.append(f"{n_kept:,} Gaussians" + (f" (most visible of {len(g):,})" if n_kept < len(g) else ""))
             parts.have("Gaussian splat")

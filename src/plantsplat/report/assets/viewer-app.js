@@ -3,7 +3,8 @@
 // Data comes from <script type="application/octet-stream"> blocks holding base64:
 //   #splat-data   .splat records, 32 bytes per Gaussian (see plantsplat/report/splat.py)
 //   #points-xyz   float32 little-endian [N, 3];  #points-rgb   uint8 [N, 3]
-// and #viewer-config (JSON): {center: [3], radius, background, splat: bool, points: bool, mode}.
+// and #viewer-config (JSON): {center: [3], radius, background, splat: bool, points: bool, mode,
+// splat_count, preview_count}.
 // window.plantsplatViewer exposes state for tests and benchmarks: state ('loading' | 'ready' | 'error'),
 // error, firstContentMs (first frame with the model drawn, ms since navigation start), setMode(mode),
 // rendered() -> Promise (next frame presented), setAdaptive(bool) (dynamic resolution while moving),
@@ -81,6 +82,7 @@
     scene.add(grid);
 
     var needsRender = true, autoRotate = false, interacting = false, splat = null, points = null, spark = null;
+    var preview = null, usePreview = false, previewCount = 0;  // preview: the most visible Gaussians, drawn while moving when slow
     var orbitJob = null, renderWaiters = [];
     function requestRender() { needsRender = true; }
 
@@ -120,6 +122,18 @@
       return n / (probe.length / 16);
     }
 
+    // Preview for slow WebGL (software rendering): the most visible Gaussians (records are stored most
+    // visible first, so a prefix) with a Spark level-of-detail tree, so the number drawn while moving can
+    // be cut to fit a frame budget. Built after the first full frame is on screen.
+    function buildPreview() {
+      var n = cfg.splat_count || 0, k = Math.min(n, cfg.preview_count || 12000);
+      if (!cfg.splat || !adaptive || n < 2 * k || preview) return;
+      var p = new L.SplatMesh({ fileBytes: dataBlock("splat-data").subarray(0, k * 32), fileType: "splat", lod: true });
+      p.visible = false;
+      scene.add(p);
+      p.initialized.then(function () { preview = p; previewCount = k; spark.lodSplatCount = k; api.previewCount = k; });
+    }
+
     var zAxis = new THREE.Vector3(0, 0, 1);
     function turn(angle) {
       var off = camera.position.clone().sub(controls.target);
@@ -139,16 +153,37 @@
       if (adaptive && lastFrameT !== null && moving) {
         var dt = now - lastFrameT;
         frameEma = frameEma === null ? dt : 0.7 * frameEma + 0.3 * dt;
-        if (frameEma > 45 && ratio > minRatio) setRatio(Math.max(minRatio, ratio * 0.75));
-        else if (frameEma < 22 && ratio < fullRatio) setRatio(Math.min(fullRatio, ratio / 0.85));
+        if (frameEma > 150) {
+          // far too slow (software WebGL): preview subset and half the resolution at once, then fewer
+          // preview splats (Spark's level-of-detail budget)
+          if (preview && !usePreview) { usePreview = true; applyVisibility(); }
+          else if (usePreview && ratio <= minRatio) spark.lodSplatCount = Math.max(1000, Math.round(spark.lodSplatCount * 0.4));
+          setRatio(Math.max(minRatio, ratio * 0.5));
+          frameEma = null;
+        } else if (frameEma > 45) {
+          // too slow: lower the resolution to half, then draw the preview subset, then lower further
+          if (ratio > fullRatio * 0.5) setRatio(Math.max(fullRatio * 0.5, ratio * 0.75));
+          else if (preview && !usePreview) { usePreview = true; applyVisibility(); frameEma = null; }
+          else if (ratio > minRatio) setRatio(Math.max(minRatio, ratio * 0.75));
+          else if (usePreview && spark.lodSplatCount > 1000) { spark.lodSplatCount = Math.round(spark.lodSplatCount * 0.6); frameEma = null; }
+        } else if (frameEma < 22 && usePreview && spark.lodSplatCount < previewCount) {
+          spark.lodSplatCount = Math.min(previewCount, Math.round(spark.lodSplatCount / 0.7));
+        } else if (frameEma < 22 && ratio < fullRatio) {
+          setRatio(Math.min(fullRatio, ratio / 0.85));
+        } else if (frameEma < 12 && usePreview) {
+          usePreview = false; applyVisibility(); frameEma = null;
+        }
       }
-      if (!moving && ratio !== fullRatio && now - lastMoveT > 250) { setRatio(fullRatio); frameEma = null; needsRender = true; }
+      if (!moving && (ratio !== fullRatio || usePreview) && now - lastMoveT > 250) {
+        setRatio(fullRatio); usePreview = false; applyVisibility(); frameEma = null; needsRender = true;
+      }
       lastFrameT = moving ? now : null;
       if (needsRender) {
         needsRender = false;
         renderer.render(scene, camera);
         if (api.state === "ready" && api.firstContentMs === null && checkContent() > 0.002) {
           api.firstContentMs = performance.now();
+          setTimeout(buildPreview, 300);
         }
         var waiters = renderWaiters;
         renderWaiters = [];
@@ -157,7 +192,8 @@
       if (orbitJob && orbitJob.t0 !== null && ++orbitJob.done >= orbitJob.frames) {
         var job = orbitJob, ms = (performance.now() - job.t0) / job.frames;
         orbitJob = null;
-        job.resolve({ frames: job.frames, msPerFrame: ms, fps: 1000 / ms, pixelRatio: ratio, fullPixelRatio: fullRatio });
+        job.resolve({ frames: job.frames, msPerFrame: ms, fps: 1000 / ms, pixelRatio: ratio, fullPixelRatio: fullRatio,
+                     preview: usePreview ? spark.lodSplatCount : null });
       }
       requestAnimationFrame(frame);
     }
@@ -167,20 +203,26 @@
     controls.addEventListener("end", function () { interacting = false; });
     api.three = { renderer: renderer, scene: scene, camera: camera, controls: controls };
 
+    function applyVisibility() {
+      var mode = api.mode, showSplat = mode === "splat" || mode === "both";
+      if (splat) splat.visible = showSplat && !(usePreview && preview);
+      if (preview) preview.visible = showSplat && usePreview;
+      if (spark) spark.visible = showSplat;  // Spark draws its splat buffer unless hidden itself
+      if (points) points.visible = mode === "points" || mode === "both";
+      requestRender();
+    }
     function setMode(mode) {
       api.mode = mode;
-      if (splat) splat.visible = mode === "splat" || mode === "both";
-      if (points) points.visible = mode === "points" || mode === "both";
+      applyVisibility();
       var buttons = document.querySelectorAll("[data-viewer-mode]");
       for (var i = 0; i < buttons.length; i++) {
         buttons[i].classList.toggle("active", buttons[i].getAttribute("data-viewer-mode") === mode);
       }
-      requestRender();
     }
     api.setMode = setMode;
     api.home = function () { homeView(); controls.target.copy(center); controls.update(); requestRender(); };
     api.setAutoRotate = function (on) { autoRotate = !!on; requestRender(); };
-    api.setAdaptive = function (on) { adaptive = !!on; if (!adaptive) setRatio(fullRatio); };
+    api.setAdaptive = function (on) { adaptive = !!on; if (!adaptive) { setRatio(fullRatio); usePreview = false; applyVisibility(); } };
     // resolves once the next frame has been rendered and presented
     api.rendered = function () { return new Promise(function (res) { renderWaiters.push(res); requestRender(); }); };
     // turn the camera a full circle in `frames` displayed frames; resolves with the frame rate
@@ -212,10 +254,7 @@
       scene.add(points);
     }
     if (cfg.splat) {
-      var sparkOptions = { renderer: renderer, onDirty: requestRender };
-      var extra = cfg.spark_options || {};
-      for (var key in extra) sparkOptions[key] = extra[key];
-      spark = new L.SparkRenderer(sparkOptions);
+      spark = new L.SparkRenderer({ renderer: renderer, onDirty: requestRender });
       scene.add(spark);
       splat = new L.SplatMesh({ fileBytes: dataBlock("splat-data"), fileType: "splat" });
       scene.add(splat);
