@@ -10,7 +10,7 @@ Example:
     >>> from plantsplat.synth.mesh import box_mesh
     >>> s = sample_surface([box_mesh((0, 0, 0), (1, 1, 1), cls=1)], np.zeros((1, 8, 8, 3), np.uint8), 50.0,
     ...                    np.random.default_rng(0))
-    >>> s["xyz"].shape[1], s["xyz"][:, 2].max()
+    >>> s["xyz"].shape[1], float(s["xyz"][:, 2].max())
     (3, 1.0)
 """
 

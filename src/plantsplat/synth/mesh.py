@@ -7,7 +7,7 @@ with numpy and handed to moderngl in one vertex buffer (see :mod:`plantsplat.syn
 Example:
     >>> m = box_mesh((0, 0, 0), (2, 2, 2), cls=30)
     >>> m.v.shape, m.f.shape
-    ((24, 3), (12, 3))
+    ((20, 3), (10, 3))
 """
 
 from __future__ import annotations

@@ -12,7 +12,8 @@ rows counted from the top. The GL image is flipped to top-down rows when read ba
 
 Example:
     >>> r = Renderer(meshes, layers, intr, lights)           # doctest: +SKIP
-    >>> rgb_linear, ids = r.render(c2w)                      # [H, W, 3] float32, [H, W] uint8
+    >>> # rgb_linear [H, W, 3] float32 (linear radiance), ids [H, W] uint8 (class per pixel)
+    >>> rgb_linear, ids = r.render(c2w)                      # doctest: +SKIP
 """
 
 from __future__ import annotations
