@@ -38,4 +38,6 @@ def evaluate_workspace(ws, **kwargs) -> dict:
     return _eval(ws, **kwargs)
 
 
-__all__ = ["TrainConfig", "train_workspace", "export_workspace", "evaluate_workspace"]
+TrainOptions = TrainConfig  # the name the end-to-end runner uses
+
+__all__ = ["TrainConfig", "TrainOptions", "train_workspace", "export_workspace", "evaluate_workspace"]

@@ -126,6 +126,7 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
         "render_fps": len(names) / render_seconds if render_seconds > 0 else None,
         "render_megapixels": n_px / 1e6,
         "train_seconds": summary.get("train_seconds"),
+        "train_cpu_seconds": summary.get("train_cpu_seconds"),
         "iterations": cfg["iterations"],
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "per_view": per_view,

@@ -70,18 +70,22 @@ def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: floa
     y = gt.permute(2, 0, 1)[None]
     c = x.shape[1]
     g = _gaussian_window(window, sigma, x.dtype).to(x.device)
-    kx = g.view(1, 1, 1, -1).expand(c, 1, 1, window)
-    ky = g.view(1, 1, -1, 1).expand(c, 1, window, 1)
+    stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)  # [1, 5C, H, W]: one blur for all five maps
+    n = stack.shape[1]
+    kx = g.view(1, 1, 1, -1).repeat(n, 1, 1, 1).contiguous()  # [5C, 1, 1, win]
+    ky = g.view(1, 1, -1, 1).repeat(n, 1, 1, 1).contiguous()  # [5C, 1, win, 1]
     pad = window // 2
-
-    def blur(t):
-        t = F.conv2d(F.pad(t, (pad, pad, 0, 0)), kx, groups=c)
-        return F.conv2d(F.pad(t, (0, 0, pad, pad)), ky, groups=c)
-
-    mu_x, mu_y = blur(x), blur(y)
-    sxx = blur(x * x) - mu_x**2
-    syy = blur(y * y) - mu_y**2
-    sxy = blur(x * y) - mu_x * mu_y
+    was = torch.backends.mkldnn.enabled
+    torch.backends.mkldnn.enabled = False  # oneDNN's depthwise path measured 2x slower here
+    try:
+        b = F.conv2d(F.pad(stack, (pad, pad, 0, 0)), kx, groups=n)
+        b = F.conv2d(F.pad(b, (0, 0, pad, pad)), ky, groups=n)
+    finally:
+        torch.backends.mkldnn.enabled = was
+    mu_x, mu_y, exx, eyy, exy = b.split(c, dim=1)
+    sxx = exx - mu_x**2
+    syy = eyy - mu_y**2
+    sxy = exy - mu_x * mu_y
     c1, c2 = 0.01**2, 0.03**2
     s = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))
     return s[0].permute(1, 2, 0)  # [H, W, C]

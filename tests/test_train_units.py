@@ -1,0 +1,231 @@
+"""Unit tests of the trainer's parts against independent references: metrics (OpenCV SSIM, the
+LPIPS test vector), Inria PLY round trip, density control, the split, camera loading."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from plantsplat.errors import PlantsplatError
+
+WEIGHTS = Path(__file__).resolve().parents[2] / "shared" / "weights"
+
+
+def _ssim_opencv(a: np.ndarray, b: np.ndarray) -> float:
+    """SSIM of the OpenCV tutorial (GaussianBlur 11x11, sigma 1.5), zero-padded borders as ours."""
+    import cv2
+
+    a, b = a.astype(np.float64), b.astype(np.float64)
+    blur = lambda x: cv2.GaussianBlur(x, (11, 11), 1.5, borderType=cv2.BORDER_CONSTANT)  # noqa: E731
+    mu_a, mu_b = blur(a), blur(b)
+    saa, sbb, sab = blur(a * a) - mu_a**2, blur(b * b) - mu_b**2, blur(a * b) - mu_a * mu_b
+    c1, c2 = 0.01**2, 0.03**2
+    m = ((2 * mu_a * mu_b + c1) * (2 * sab + c2)) / ((mu_a**2 + mu_b**2 + c1) * (saa + sbb + c2))
+    return float(m.mean())
+
+
+def test_psnr_ssim_against_references():
+    from plantsplat.train.metrics import psnr, ssim
+
+    rng = np.random.default_rng(0)
+    a = rng.random((40, 50, 3)).astype(np.float32)
+    b = np.clip(a + rng.normal(0, 0.05, a.shape), 0, 1).astype(np.float32)
+    mse = float(((a - b) ** 2).mean())
+    assert float(psnr(torch.from_numpy(a), torch.from_numpy(b))) == pytest.approx(-10 * np.log10(mse), rel=1e-5)
+    assert float(ssim(torch.from_numpy(a), torch.from_numpy(b))) == pytest.approx(_ssim_opencv(a, b), abs=1e-4)
+    # masked: only the masked pixels count
+    m = np.zeros((40, 50, 1), np.float32)
+    m[:20] = 1
+    mse_top = float(((a[:20] - b[:20]) ** 2).mean())
+    assert float(psnr(torch.from_numpy(a), torch.from_numpy(b), torch.from_numpy(m))) == pytest.approx(
+        -10 * np.log10(mse_top), rel=1e-5)
+
+
+def test_ssim_gradient_flows():
+    from plantsplat.train.metrics import ssim
+
+    x = torch.rand(24, 24, 3, requires_grad=True)
+    y = torch.rand(24, 24, 3)
+    (1 - ssim(x, y)).backward()
+    assert x.grad is not None and torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+
+
+@pytest.mark.skipif(not (WEIGHTS / "lpips_alex_v0.1.pth").is_file(), reason="LPIPS weights not in ../shared/weights")
+def test_lpips_test_vector():
+    from plantsplat.io import read_image
+    from plantsplat.train.metrics import load_lpips, lpips
+
+    net = load_lpips(WEIGHTS / "lpips_alex_v0.1.pth")
+    img = lambda n: torch.from_numpy(read_image(WEIGHTS / "lpips-test" / n)).float() / 255  # noqa: E731
+    ref = img("ex_ref.png")
+    assert lpips(net, img("ex_p0.png"), ref) == pytest.approx(0.722, abs=1e-3)
+    assert lpips(net, img("ex_p1.png"), ref) == pytest.approx(0.138, abs=1e-3)
+    assert lpips(net, ref, ref) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_lpips_missing_weights_is_null(tmp_path, monkeypatch):
+    from plantsplat.train.metrics import load_lpips, lpips
+
+    monkeypatch.setenv("PLANTSPLAT_LPIPS_WEIGHTS", str(tmp_path / "none.pth"))
+    net = load_lpips()
+    assert net is None and lpips(net, torch.zeros(8, 8, 3), torch.ones(8, 8, 3)) is None
+
+
+def _random_params(n=50, deg=2, seed=0):
+    from plantsplat.train.model import init_params
+
+    rng = np.random.default_rng(seed)
+    p = init_params(rng.random((n, 3)) * 10, rng.random((n, 3)), sh_degree=deg, seed=seed)
+    with torch.no_grad():
+        p["shN"].normal_()
+        p["opacities"].normal_()
+    return p
+
+
+def test_splat_ply_round_trip_and_layout(tmp_path):
+    from plyfile import PlyData
+
+    from plantsplat.train.export import read_splat_ply, write_splat_ply
+
+    p = {k: v.detach().numpy() for k, v in _random_params(deg=3).items()}
+    q = p["quats"] / np.linalg.norm(p["quats"], axis=1, keepdims=True)
+    write_splat_ply(tmp_path / "s.ply", p["means"], p["scales"], q, p["opacities"], p["sh0"], p["shN"])
+    names = PlyData.read(str(tmp_path / "s.ply"))["vertex"].data.dtype.names
+    assert names[:9] == ("x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2")
+    assert names[-8:] == ("opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")
+    assert sum(n.startswith("f_rest_") for n in names) == 45
+    g = read_splat_ply(tmp_path / "s.ply")
+    for k in ("means", "scales", "opacities", "sh0", "shN"):
+        np.testing.assert_allclose(g[k], p[k], rtol=1e-6)
+    # Inria's channel-major f_rest: f_rest_0..14 are the red channel's 15 coefficients
+    v = PlyData.read(str(tmp_path / "s.ply"))["vertex"]
+    np.testing.assert_allclose(v["f_rest_1"], p["shN"][:, 1, 0], rtol=1e-6)
+    np.testing.assert_allclose(v["f_rest_15"], p["shN"][:, 0, 1], rtol=1e-6)
+
+
+def test_read_splat_ply_rejects_other_ply(tmp_path):
+    from plantsplat.train.export import read_splat_ply, write_points_ply
+
+    write_points_ply(tmp_path / "p.ply", np.zeros((3, 3)), np.zeros((3, 3)), np.ones(3), np.ones((3, 3)))
+    with pytest.raises(PlantsplatError, match="not a 3DGS PLY"):
+        read_splat_ply(tmp_path / "p.ply")
+
+
+def test_strategy_grow_prune_keeps_optimizer_in_sync():
+    from plantsplat.train.model import make_optimizers
+    from plantsplat.train.strategy import DensityStrategy
+
+    params = _random_params(n=40)
+    lrs = dict(means=1e-3, scales=1e-3, quats=1e-3, opacities=1e-2, sh0=1e-3, shN=1e-3)
+    opts = make_optimizers(params, lrs)
+    sum(p.sum() for p in params.values()).backward()
+    for o in opts.values():
+        o.step()
+    with torch.no_grad():
+        params["opacities"][:10] = -5.0  # opacity 0.007: pruned
+        params["opacities"][10:] = 2.0
+        params["scales"][:] = np.log(0.01)
+        params["scales"][30:] = np.log(5.0)  # large: split instead of clone
+    st = DensityStrategy(refine_start_iter=0, refine_every=1, reset_every=0, grow_grad2d=0.5)
+    state = st.initialize_state(scene_scale=10.0)
+    state["grad2d"] = torch.zeros(40)
+    state["count"] = torch.ones(40)
+    state["grad2d"][[20, 21, 35]] = 1.0  # two small (clone) and one large (split)
+    st._grow(params, opts, state)
+    assert params["means"].shape[0] == 40 + 2 + 1  # split replaces one by two
+    st._prune(params, opts, state, step=1)
+    assert params["means"].shape[0] == 33
+    for name, o in opts.items():
+        p = params[name]
+        assert o.param_groups[0]["params"][0] is p
+        assert o.state[p]["exp_avg"].shape == p.shape
+    assert (torch.sigmoid(params["opacities"]) >= 0.1).all()
+    # split children are 1.6x smaller than the parent
+    np.testing.assert_allclose(torch.exp(params["scales"][-2:]).detach().numpy(), 5.0 / 1.6, rtol=1e-5)
+    assert int((torch.exp(params["scales"][:-2]).detach().max(dim=-1).values < 4.0).sum()) == 33 - 2 - 9  # 9 large stay
+
+
+def test_strategy_opacity_reset():
+    from plantsplat.train.model import make_optimizers
+    from plantsplat.train.strategy import DensityStrategy
+
+    params = _random_params(n=10)
+    with torch.no_grad():
+        params["opacities"][:] = 3.0
+    opts = make_optimizers(params, dict(means=1, scales=1, quats=1, opacities=1, sh0=1, shN=1))
+    DensityStrategy(prune_opa=0.1)._reset_opacity(params, opts)
+    assert torch.allclose(torch.sigmoid(params["opacities"]), torch.tensor(0.2), atol=1e-6)
+
+
+def test_split_fractions():
+    from plantsplat.train.data import make_split
+
+    names = [f"frame_{i:05d}.png" for i in range(120)]
+    s = make_split(names, 0.4)
+    assert len(s["train"]) == 72 and len(s["test"]) == 48 and not set(s["train"]) & set(s["test"])
+    s = make_split(names, test_every=8)
+    assert s["test"] == names[::8]
+    with pytest.raises(PlantsplatError):
+        make_split(names[:3], test_every=1)
+
+
+def test_transforms_and_colmap_agree(tmp_path):
+    """A camera written as nerfstudio transforms.json and as a COLMAP model loads to the same pose."""
+    import pycolmap
+
+    from plantsplat.io import write_image_atomic, write_json_atomic
+    from plantsplat.train.data import load_scene
+    from plantsplat.workspace import Workspace
+
+    rng = np.random.default_rng(1)
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    R *= np.sign(np.linalg.det(R))
+    t = rng.normal(size=3)
+    w2c = np.eye(4)
+    w2c[:3, :3], w2c[:3, 3] = R, t
+    ws1, ws2 = Workspace(tmp_path / "a"), Workspace(tmp_path / "b")
+    for ws in (ws1, ws2):
+        for i in range(2):
+            write_image_atomic(ws.images_dir / f"frame_{i:05d}.png", np.zeros((30, 40, 3), np.uint8))
+    c2w_gl = np.linalg.inv(w2c) @ np.diag([1.0, -1, -1, 1])
+    write_json_atomic(ws1.transforms_json, {"fl_x": 50.0, "fl_y": 50.0, "cx": 20.0, "cy": 15.0, "w": 40, "h": 30,
+                                            "frames": [{"file_path": f"images/frame_{i:05d}.png",
+                                                        "transform_matrix": c2w_gl.tolist()} for i in range(2)]})
+    rec = pycolmap.Reconstruction()
+    cam = pycolmap.Camera(model="PINHOLE", width=40, height=30, params=[50.0, 50.0, 20.0, 15.0], camera_id=1)
+    rec.add_camera_with_trivial_rig(cam) if hasattr(rec, "add_camera_with_trivial_rig") else rec.add_camera(cam)
+    for i in range(2):
+        im = pycolmap.Image(name=f"frame_{i:05d}.png", camera_id=1, image_id=i + 1)
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(R), t)
+        if hasattr(rec, "add_image_with_trivial_frame"):
+            rec.add_image_with_trivial_frame(im, pose)
+        else:
+            im.cam_from_world = pose
+            rec.add_image(im)
+    ws2.sparse_dir.mkdir(parents=True)
+    rec.write_binary(str(ws2.sparse_dir))
+    s1, s2 = load_scene(ws1, need_masks=False), load_scene(ws2, need_masks=False)
+    np.testing.assert_allclose(s1.views[0].viewmat, w2c, atol=1e-9)
+    np.testing.assert_allclose(s2.views[0].viewmat, w2c, atol=1e-6)
+    np.testing.assert_allclose(s1.views[0].K, s2.views[0].K)
+
+
+def test_undistortion_applied(tmp_path):
+    from plantsplat.io import write_image_atomic, write_json_atomic
+    from plantsplat.train.data import load_scene
+    from plantsplat.workspace import Workspace
+
+    ws = Workspace(tmp_path)
+    img = np.zeros((60, 80, 3), np.uint8)
+    img[:, ::8] = 255
+    for i in range(2):
+        write_image_atomic(ws.images_dir / f"frame_{i:05d}.png", img)
+    fr = [{"file_path": f"images/frame_{i:05d}.png", "transform_matrix": np.eye(4).tolist()} for i in range(2)]
+    write_json_atomic(ws.transforms_json, {"fl_x": 60.0, "fl_y": 60.0, "cx": 40.0, "cy": 30.0, "w": 80, "h": 60,
+                                           "k1": -0.3, "frames": fr})
+    v = load_scene(ws, need_masks=False).views[0]
+    assert v.image.shape == img.shape and not np.array_equal(v.image, img)
+    assert v.dist.size == 0  # pinhole from here on
