@@ -59,6 +59,8 @@ def test_output_contract(synth_capture):
         assert np.allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-9) and np.linalg.det(T[:3, :3]) > 0
         lo, hi = bands[f["ring"]]
         assert lo <= T[2, 3] - soil < hi
+        # the camera stays in the free space between the platform and the furniture
+        assert gt["platform"]["radius_cm"] < np.linalg.norm(T[:2, 3]) < gt["room"]["camera_clearance_cm"]
         # the camera looks at the plant: the pot axis at soil level projects inside the image
         uv, z = _project(_K(gt), T, [[0, 0, soil]])
         assert z[0] > 0 and 0 <= uv[0, 0] < 180 and 0 <= uv[0, 1] < 320

@@ -25,6 +25,21 @@ RINGS = {"low": (0.0, 5.0), "mid": (5.0, 20.0), "high": (20.0, 50.0)}
 """Camera height above the soil surface for each ring (cm), as in the paper."""
 
 
+FOV_LONG_RANGE_DEG = (62.0, 72.0)
+"""Field of view across the long side of the frame, drawn per seed (phone main cameras)."""
+
+
+def framing_distance(reach: float, fov_short_deg: float, factor: float = 1.0) -> float:
+    """Camera distance (cm) from the pot axis that frames ``reach`` cm around it across the short side."""
+    d = (0.85 * reach + 3.0) / np.tan(np.radians(fov_short_deg) / 2) * factor
+    return float(np.clip(d, 30.0, 160.0))
+
+
+def max_distance(reach: float) -> float:
+    """An upper bound of :func:`framing_distance` over every frame shape and seed (for room layout)."""
+    return framing_distance(reach, 30.0, 1.05) + 3.0
+
+
 def intrinsics(width: int, height: int, fov_long_deg: float) -> dict:
     """Pinhole intrinsics with square pixels; ``fov_long_deg`` is the field of view across the long side."""
     f = 0.5 * max(width, height) / np.tan(np.radians(fov_long_deg) / 2)
@@ -72,8 +87,7 @@ def camera_path(rng: np.random.Generator, n: int, soil_z: float, plant_height: f
     order = ["low", "mid", "high"] if rng.random() < 0.5 else ["high", "mid", "low"]
     direction = 1.0 if rng.random() < 0.5 else -1.0
     az0 = rng.uniform(0, 2 * np.pi)
-    dist = (0.85 * reach + 3.0) / np.tan(np.radians(fov_short_deg) / 2) * rng.uniform(0.92, 1.05)
-    dist = float(np.clip(dist, 30.0, 160.0))
+    dist = framing_distance(reach, max(fov_short_deg, 30.0), rng.uniform(0.92, 1.05))
     t = (np.arange(n) + 0.5) / n  # [n] in (0, 1)
     seg = np.minimum((t * 3).astype(int), 2)
     local = t * 3 - seg  # progress inside the ring

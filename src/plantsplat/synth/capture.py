@@ -125,7 +125,7 @@ def generate(cfg: SynthConfig) -> dict:
 
     # camera
     rng_cam = np.random.default_rng(s_cam)
-    fov_long = float(rng_cam.uniform(62.0, 72.0))
+    fov_long = float(rng_cam.uniform(*cam.FOV_LONG_RANGE_DEG))
     intr = cam.intrinsics(cfg.width, cfg.height, fov_long)
     K = cam.K_matrix(intr)
     fov_short = float(np.degrees(2 * np.arctan(0.5 * min(cfg.width, cfg.height) / intr["fx"])))

@@ -221,9 +221,14 @@ def make_scene(rng: np.random.Generator, cube: CubeSpec = CubeSpec()) -> dict:
                                 cls=PLATFORM))
     meshes += pot_meshes(pot)
     meshes += cube_meshes(cube, T_wc)
-    # room
-    x0, x1 = -rng.uniform(130, 300), rng.uniform(130, 300)
-    y0, y1 = -rng.uniform(130, 300), rng.uniform(130, 300)
+    # room: the camera circles at most `clearance` cm from the pot axis; furniture and walls stay beyond
+    from plantsplat.synth.camera import max_distance
+
+    pv = np.concatenate([m.v for m in plant_meshes])
+    reach = max(np.linalg.norm(pv[:, :2], axis=1).max(), cube_d + cube.size * 0.75)
+    clearance = max(max_distance(reach), plat_r) + 15.0
+    x0, x1 = -(clearance + rng.uniform(40, 180)), clearance + rng.uniform(40, 180)
+    y0, y1 = -(clearance + rng.uniform(40, 180)), clearance + rng.uniform(40, 180)
     wall_h = rng.uniform(240, 300)
     tile = rng.uniform(40, 90)
     meshes.append(quad_mesh(np.array([[x0, y0, floor_z], [x1, y0, floor_z], [x1, y1, floor_z], [x0, y1, floor_z]]),
@@ -253,7 +258,7 @@ def make_scene(rng: np.random.Generator, cube: CubeSpec = CubeSpec()) -> dict:
                           [*(p + dirv * w / 2), zc + h / 2], [*(p - dirv * w / 2), zc + h / 2]])
             layer = int(rng.choice([T.POSTER, T.POSTER, T.FOLIAGE_PRINT, T.CHECKER, T.PRINT]))
             meshes.append(quad_mesh(q, np.array([[0, 1], [1, 1], [1, 0], [0, 0]]), (1, 1, 1), layer=layer, cls=WALL))
-    furn, items = _furniture(rng, ((x0, x1), (y0, y1)), floor_z, plat_r + 45)
+    furn, items = _furniture(rng, ((x0, x1), (y0, y1)), floor_z, clearance)
     meshes += furn
     # lights: a ceiling key light (direction towards the light), a fill and hemisphere ambient
     key_az, key_el = rng.uniform(0, 2 * np.pi), np.radians(rng.uniform(45, 80))
@@ -274,6 +279,7 @@ def make_scene(rng: np.random.Generator, cube: CubeSpec = CubeSpec()) -> dict:
         pot=pot,
         platform=dict(radius_cm=float(plat_r), height_cm=float(plat_h), colour=plat_col.tolist()),
         room=dict(x_cm=[float(x0), float(x1)], y_cm=[float(y0), float(y1)], floor_z_cm=float(floor_z),
+                  camera_clearance_cm=float(clearance),
                   wall_height_cm=float(wall_h), plain_walls=bool(plain), n_items=len(items), items=items),
         lights={k: np.asarray(v).tolist() for k, v in lights.items()},
         plant_info=plant_info,
