@@ -200,3 +200,39 @@ def test_batch_report_computes_accuracy_from_truth(tmp_path):
     text = write_batch_report(tmp_path, rows, None, {}, truth=truth).read_text()
     acc = re.sub(r"<[^>]+>", " ", text[text.index('id="accuracy"'):text.index('id="scatter"')])
     assert re.search(r"height_cm\s+4\s+[-\d.]+\s+[\d.]+\s+[\d.]+\s+0\.35\b", acc), acc  # n = 4, MAE = 0.35
+
+
+def test_generic_metrics_tables_flatten_nested_records():
+    from plantsplat.report.html import generic_tables
+
+    html = generic_tables({"mode": "object", "composite": {"psnr": 39.04}, "per_view": [
+        {"name": "frame_00001.png", "composite": {"psnr": 40.1, "ssim": 0.99}},
+        {"name": "frame_00004.png", "composite": {"psnr": 38.2}}]})
+    assert "<th>composite psnr</th><th>composite ssim</th>" in html
+    assert "<td>frame_00004.png</td><td>38.20</td><td>&ndash;</td>" in html
+    assert "<h4>composite</h4>" in html and "39.04" in html
+
+
+def test_real_capture_cameras_look_at_the_plant(datasets_dir, tmp_path):
+    """ROMI scanner: 60 views on a 300 mm circle; OpenGL -z of every camera points at the circle's centre."""
+    import shutil
+
+    src = datasets_dir / "romi_real_plant"
+    if not (src / "transforms.json").is_file():
+        pytest.skip(f"{src}/transforms.json not found")
+    c2w, names = read_cameras(src / "transforms.json")
+    centres = c2w[:, :3, 3]
+    mid = centres.mean(0)
+    dist = np.linalg.norm(centres - mid, axis=1)
+    assert len(c2w) == 60 and abs(dist.mean() - 300) < 15 and dist.std() / dist.mean() < 0.05
+    look = -c2w[:, :3, 2]
+    to_mid = (mid - centres) / dist[:, None]
+    assert np.median(np.sum(look * to_mid, axis=1)) > 0.8
+    ws = tmp_path / "romi"
+    (ws / "images").mkdir(parents=True)
+    shutil.copy(src / "transforms.json", ws / "transforms.json")
+    for name in sorted(p.name for p in (src / "images").iterdir())[:3]:
+        shutil.copy(src / "images" / name, ws / "images" / name)
+    text = write_report(ws, opts=ReportOptions(max_frames=3)).read_text()
+    assert "registered cameras</th><td>60</td>" in text and 'alt="camera path"' in text
+    assert "3 of 3 frames" in text

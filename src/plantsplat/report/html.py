@@ -80,13 +80,23 @@ def generic_tables(d: Mapping[str, Any], title: str | None = None, depth: int = 
 
     A mapping whose values are all mappings (e.g. per-view metrics) becomes one table with a row per key.
     """
-    scalars = {k: v for k, v in d.items() if not isinstance(v, Mapping)}
+    def is_records(v: Any) -> bool:
+        return isinstance(v, list) and len(v) > 0 and all(isinstance(x, Mapping) for x in v)
+
+    scalars = {k: v for k, v in d.items() if not isinstance(v, Mapping) and not is_records(v)}
     nested = {k: v for k, v in d.items() if isinstance(v, Mapping)}
+    records = {k: v for k, v in d.items() if is_records(v)}
     out = []
     if title:
         out.append(f"<h4>{esc(title)}</h4>")
     if scalars:
         out.append(kv_table(scalars))
+    for k, v in records.items():  # e.g. per-view metrics as a list of dicts: one row each
+        flat = [flatten(x) for x in v]
+        cols: list[str] = []
+        for x in flat:
+            cols += [c for c in x if c not in cols]
+        out.append(f"<h4>{esc(k)}</h4>" + rows_table(flat, cols))
     for k, v in nested.items():
         if v and all(isinstance(x, Mapping) for x in v.values()):
             cols: list[str] = []
@@ -97,6 +107,23 @@ def generic_tables(d: Mapping[str, Any], title: str | None = None, depth: int = 
         elif depth < 3:
             out.append(generic_tables(v, title=str(k), depth=depth + 1))
     return "".join(out)
+
+
+def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested mappings flattened to one level with ``"outer inner"`` keys.
+
+    Example:
+        >>> flatten({"name": "a", "composite": {"psnr": 30.0}})
+        {'name': 'a', 'composite psnr': 30.0}
+    """
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, Mapping):
+            out.update(flatten(v, key + " "))
+        else:
+            out[key] = v
+    return out
 
 
 def img_tag(data: bytes, mime: str = "image/png", alt: str = "", cls: str = "", width: int | None = None) -> str:

@@ -109,9 +109,15 @@ def _traits_section(ws: Workspace, parts: _Parts) -> str:
 
 
 def _scene_frame(points: np.ndarray) -> tuple[list[float], float]:
-    """Viewer target and radius from scene points [N, 3]: median centre, 95th-percentile distance."""
-    c = np.median(points, axis=0)
-    r = float(np.percentile(np.linalg.norm(points - c, axis=1), 95)) if len(points) > 1 else 1.0
+    """Viewer target and radius from scene points [N, 3]: centre and half diagonal of the 1-99 % box.
+
+    Percentiles keep a few floaters from shrinking the model to a dot.
+    """
+    if len(points) < 2:
+        return [float(x) for x in points.mean(0)], 1.0
+    lo, hi = np.percentile(points, [1, 99], axis=0)  # [3], [3]
+    c = (lo + hi) / 2
+    r = 0.5 * float(np.linalg.norm(hi - lo))
     return [float(x) for x in c], max(r, 1e-3)
 
 

@@ -8,7 +8,7 @@
 // window.plantsplatViewer exposes state for tests and benchmarks: state ('loading' | 'ready' | 'error'),
 // error, firstContentMs (first frame with the model drawn, ms since navigation start), setMode(mode),
 // rendered() -> Promise (next frame presented), setAdaptive(bool) (dynamic resolution while moving),
-// orbit(frames) -> Promise<{fps, msPerFrame, frames, pixelRatio, fullPixelRatio}>.
+// orbit(frames) -> Promise<{fps, msPerFrame, medianFps, medianMsPerFrame, frames, pixelRatio, preview}>.
 (function () {
   "use strict";
 
@@ -64,7 +64,7 @@
     var camera = new THREE.PerspectiveCamera(45, 1, radius * 0.01, radius * 200);
     camera.up.set(0, 0, 1);  // world frame: z up (centimetres)
     function homeView() {
-      var az = -Math.PI / 2.6, el = Math.PI / 7, dist = radius * 2.1;
+      var az = -Math.PI / 2.6, el = Math.PI / 7, dist = 0.85 * radius / Math.sin((camera.fov / 2) * Math.PI / 180);  // about the bounding sphere
       camera.position.set(center.x + dist * Math.cos(el) * Math.cos(az),
                           center.y + dist * Math.cos(el) * Math.sin(az),
                           center.z + dist * Math.sin(el));
@@ -189,10 +189,17 @@
         renderWaiters = [];
         for (var i = 0; i < waiters.length; i++) requestAnimationFrame(waiters[i]);
       }
+      if (orbitJob && orbitJob.t0 !== null) {
+        orbitJob.times.push(now - (orbitJob.last === null ? orbitJob.t0 : orbitJob.last));
+        orbitJob.last = now;
+      }
       if (orbitJob && orbitJob.t0 !== null && ++orbitJob.done >= orbitJob.frames) {
         var job = orbitJob, ms = (performance.now() - job.t0) / job.frames;
+        var sorted = job.times.slice(1).sort(function (a, b) { return a - b; });
+        var median = sorted.length ? sorted[Math.floor(sorted.length / 2)] : ms;
         orbitJob = null;
-        job.resolve({ frames: job.frames, msPerFrame: ms, fps: 1000 / ms, pixelRatio: ratio, fullPixelRatio: fullRatio,
+        job.resolve({ frames: job.frames, msPerFrame: ms, fps: 1000 / ms, medianMsPerFrame: median, medianFps: 1000 / median,
+                     pixelRatio: ratio, fullPixelRatio: fullRatio,
                      preview: usePreview ? spark.lodSplatCount : null });
       }
       requestAnimationFrame(frame);
@@ -228,7 +235,7 @@
     // turn the camera a full circle in `frames` displayed frames; resolves with the frame rate
     api.orbit = function (frames) {
       return new Promise(function (resolve) {
-        orbitJob = { frames: frames || 60, done: 0, t0: null, resolve: resolve };
+        orbitJob = { frames: frames || 60, done: 0, t0: null, last: null, times: [], resolve: resolve };
       });
     };
 
