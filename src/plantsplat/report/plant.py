@@ -199,7 +199,8 @@ def _renders_section(ws: Workspace, parts: _Parts, opts: ReportOptions) -> str:
     rdir = ws.train_dir / "renders"
     pairs = render_pairs(rdir) if rdir.is_dir() else []
     if not pairs:
-        return parts.miss("test-view renders (train/renders/<name>_render.png with <name>_gt.png)", _cmd("train", ws))
+        return parts.miss("test-view renders (train/renders/<name>_render.png with <name>_gt.png)",
+                          f"written when test views are evaluated: `plantsplat evaluate {ws.root}`")
     shown = pick_evenly(pairs, opts.max_render_pairs)
     cells = []
     for name, rp, gp in shown:
@@ -305,10 +306,11 @@ def _runtimes_section(ws: Workspace, parts: _Parts) -> str:
         if not isinstance(v, dict):
             continue
         s = secs[k]
-        rows.append({"stage": k, "time": _fmt_seconds(s), "share": f'<span class="bar" style="width:{int(200 * s / total)}px">'
+        status = ("failed: " + str(v["failed"])) if v.get("failed") else ("skipped (reused)" if v.get("skipped") else "ran")
+        rows.append({"stage": k, "status": status, "time": _fmt_seconds(s), "share": f'<span class="bar" style="width:{int(200 * s / total)}px">'
                      f"</span> {100 * s / total:.0f}%", "peak memory (MB)": v.get("peak_rss_mb"),
                      **{kk: vv for kk, vv in v.items() if kk not in {"seconds", "peak_rss_mb"} and H.is_number(vv)}})
-    cols = ["stage", "time", "share", "peak memory (MB)"]
+    cols = ["stage", "status", "time", "share", "peak memory (MB)"]
     for row in rows:
         cols += [c for c in row if c not in cols]
     parts.have("run times")
