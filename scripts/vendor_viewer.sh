@@ -14,6 +14,7 @@ set -euo pipefail
 THREE_VERSION=0.180.0
 SPARK_VERSION=2.2.0
 ESBUILD_VERSION=0.28.2
+FFLATE_VERSION=0.8.3   # spark's only dependency, pinned too so rebuilds are byte-identical
 
 HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 ASSETS="$HERE/src/plantsplat/report/assets"
@@ -23,7 +24,7 @@ trap 'rm -rf "$TMP"' EXIT
 cd "$TMP"
 npm init -y >/dev/null
 npm install --no-audit --no-fund --save-exact \
-  "three@$THREE_VERSION" "@sparkjsdev/spark@$SPARK_VERSION" "esbuild@$ESBUILD_VERSION" >/dev/null
+  "three@$THREE_VERSION" "@sparkjsdev/spark@$SPARK_VERSION" "fflate@$FFLATE_VERSION" "esbuild@$ESBUILD_VERSION" >/dev/null
 
 cat > entry.js <<'JS'
 import * as THREE from "three";
@@ -40,12 +41,10 @@ cp viewer-lib.js "$ASSETS/viewer-lib.js"
 {
   echo "three.js $THREE_VERSION"; echo; cat node_modules/three/LICENSE; echo; echo "----"
   echo "@sparkjsdev/spark $SPARK_VERSION"; echo; cat node_modules/@sparkjsdev/spark/LICENSE; echo; echo "----"
-  FFLATE_VERSION="$(node -p 'require("./node_modules/fflate/package.json").version')"
   echo "fflate $FFLATE_VERSION (dependency of spark)"; echo; cat node_modules/fflate/LICENSE
 } > "$ASSETS/viewer-lib.LICENSES.txt"
 
 SHA="$(sha256sum "$ASSETS/viewer-lib.js" | cut -d' ' -f1)"
-FFLATE_VERSION="$(node -p 'require("./node_modules/fflate/package.json").version')"
 cat > "$ASSETS/VENDORED.md" <<MD
 # Vendored third-party code
 

@@ -57,9 +57,13 @@ def test_batch_and_partial_reports_open_without_errors(tmp_path):
     rows = [{"plant_id": f"p{i}", "status": "ok", "height_cm": 20.0 + i, "width1_cm": 30.0 - i} for i in range(4)]
     truth = {f"p{i}": {"height_cm": 20.5 + 0.9 * i, "width1_cm": 29.0 - i} for i in range(4)}
     out = write_batch_report(tmp_path / "batch", rows, None, {"p0": write_report(part)}, truth=truth)
+    pts = make_synthetic_workspace(tmp_path / "pts", n_gaussians=3000, n_frames=2, stages=("export",))
+    (pts / "export" / "splat.ply").unlink()  # a point cloud but no splat: the viewer shows the points
     with ReportBrowser() as browser:
         res = browser.open(part / "report.html", screenshot=_artifacts(tmp_path) / "report_partial.png")
         assert res.console_errors == [] and res.viewer_state is None
+        res = browser.open(write_report(pts))
+        assert res.console_errors == [] and res.viewer_state == "ready" and res.canvas_fraction > 0.003
         res = browser.open(out, screenshot=_artifacts(tmp_path) / "report_batch.png", keep_page=True)
         page = res.page
         page.wait_for_selector(".scatter .main-svg", timeout=30_000)
@@ -70,3 +74,12 @@ def test_batch_and_partial_reports_open_without_errors(tmp_path):
     assert res.console_errors == []
     assert n_plots == 2 and n_markers == 8  # 4 plants x 2 traits
     assert (out.parent / href).resolve() == (part / "report.html").resolve()
+
+
+def test_without_webgl_the_viewer_says_so(tmp_path):
+    ws = make_synthetic_workspace(tmp_path / "pts", n_gaussians=300, n_frames=2, stages=("export",))
+    with ReportBrowser(extra_args=("--disable-webgl", "--disable-3d-apis")) as browser:
+        res = browser.open(write_report(ws), keep_page=True)
+        message = res.page.locator("#viewer-message").inner_text()
+        res.page.close()
+    assert res.viewer_state == "error" and "WebGL" in message

@@ -85,8 +85,9 @@ class ReportBrowser:
         ...     r2 = b.open("b/report.html", screenshot="b.png")
     """
 
-    def __init__(self, viewport: tuple[int, int] = (1280, 900)):
+    def __init__(self, viewport: tuple[int, int] = (1280, 900), extra_args: tuple[str, ...] = ()):
         self.viewport = viewport
+        self.extra_args = list(extra_args)
         self._pw = None
         self.browser = None
 
@@ -98,7 +99,8 @@ class ReportBrowser:
             raise RuntimeError("chromium not found; install the Debian package `chromium`")
         self._pw = sync_playwright().start()
         try:
-            self.browser = self._pw.chromium.launch(executable_path=exe, args=CHROMIUM_ARGS, headless=True)
+            self.browser = self._pw.chromium.launch(executable_path=exe, args=CHROMIUM_ARGS + self.extra_args,
+                                                    headless=True)
         except BaseException:
             self._pw.stop()
             raise
