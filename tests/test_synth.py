@@ -348,3 +348,20 @@ def test_impossible_settings_exit_2_with_one_line(tmp_path, capsys, extra, word)
     err = capsys.readouterr().err.strip()
     assert err.startswith("error:") and word in err and len(err.splitlines()) == 1
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_frames_are_well_exposed_across_seeds(tmp_path):
+    """Tiny captures of several seeds: every frame is exposed (no black or blown-out frames, no NaN
+    pixels from the shader) and shows the plant and cube."""
+    from plantsplat.io import read_image
+    from plantsplat.synth import SynthConfig, generate
+
+    for seed in (7, 11, 12, 13):
+        out = tmp_path / f"s{seed}"
+        generate(SynthConfig(out=out, seed=seed, frames=3, width=96, height=160, msaa=4))
+        for i in range(3):
+            img = read_image(out / f"frames/frame_{i:05d}.png")
+            mask = read_image(out / f"masks/frame_{i:05d}.png", "gray")
+            assert 40 < img.mean() < 200, (seed, i, img.mean())
+            assert img.std() > 15 and (img.max(axis=2) < 3).mean() < 0.05, (seed, i)
+            assert 0.005 < (mask == 255).mean() < 0.6, (seed, i)

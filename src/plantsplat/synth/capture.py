@@ -97,7 +97,10 @@ def generate(cfg: SynthConfig) -> dict:
     validate(cfg)
     t_all = time.perf_counter()
     timings: dict[str, float] = {}
-    out = prepare_output_dir(cfg.out, cfg.force)
+    try:
+        out = prepare_output_dir(cfg.out, cfg.force)
+    except OSError as exc:
+        raise UsageError(f"{cfg.out}: cannot create the output folder ({exc.strerror}); choose another --out") from exc
     _remove_stale_frames(out, cfg.frames)
     (out / "frames").mkdir(exist_ok=True)
     (out / "masks").mkdir(exist_ok=True)

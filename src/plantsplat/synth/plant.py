@@ -111,7 +111,8 @@ def _unit(v):
     return v / np.linalg.norm(v)
 
 
-def _leaflet(rng, origin, d, side, nrm, length, half_width, cup, fold, droop, n_teeth, depth, col, leaf_idx):
+def _leaflet(rng, origin, d, side, nrm, length, half_width, cup, fold, droop, n_teeth, depth, col, leaf_idx,
+             senescence: float = 0.0):
     """One serrated, cupped leaflet as a grid mesh (midrib along ``d``, blade normal ``nrm``)."""
     smax = rng.uniform(0.5, 0.62)
     a = np.log(0.5) / np.log(smax)
@@ -130,12 +131,15 @@ def _leaflet(rng, origin, d, side, nrm, length, half_width, cup, fold, droop, n_
     z = cup * half_width * Tt**2 * shape[:, None] + fold * np.abs(Tt) * W - droop * length * S**2
     P = origin + x[..., None] * d + y[..., None] * side + z[..., None] * nrm
     UV = np.stack([S, (Tt + 1) / 2], -1)
-    shade = 1.0 + 0.06 * rng.standard_normal() + 0.0 * S
-    colv = col[None, None, :] * shade[..., None] * np.ones_like(S)[..., None]
+    shade = 1.0 + 0.06 * rng.standard_normal()
+    colv = np.broadcast_to(col * shade, S.shape + (3,)).copy()  # [nu, nv, 3]
+    if senescence > 0:  # older leaves: yellow-brown from the margin and tip inward
+        edge = np.clip((np.abs(Tt) * 0.6 + S * 0.6 - 0.55) / 0.45, 0, 1)[..., None] * senescence
+        colv = colv * (1 - edge) + np.array([0.55, 0.45, 0.12]) * edge
     return grid_mesh(P, UV, colv.reshape(-1, 3), layer=T.LEAF_TOP, cls=LEAF, instance=leaf_idx)
 
 
-def _leaf(rng, idx, crown, crown_r, azim, L, elev, leaflet_len, pot: Pot, tint):
+def _leaf(rng, idx, crown, crown_r, azim, L, elev, leaflet_len, pot: Pot, tint, senescence: float = 0.0):
     """A trifoliate leaf: petiole tube + three leaflets. Returns meshes, the blade vertices and info."""
     h = np.array([np.cos(azim), np.sin(azim), 0.0])
     base = crown + h * crown_r * 0.5 + Z * 0.3
@@ -170,22 +174,23 @@ def _leaf(rng, idx, crown, crown_r, azim, L, elev, leaflet_len, pot: Pot, tint):
         ln = leaflet_len * (1.0 if k == 0 else rng.uniform(0.82, 0.95))
         hw = ln * rng.uniform(0.34, 0.42)
         blades.append(_leaflet(rng, tip + d * 0.35, d, sd, n, ln, hw, cup, fold, droop, n_teeth, depth, leaf_col,
-                               idx))
+                               idx, senescence))
     blade = merge(blades)
     return [petiole, blade], curve, blade.v, dict(azimuth_deg=float(np.degrees(azim) % 360), petiole_length_cm=float(L),
                                                   elevation_deg=float(np.degrees(elev)),
                                                   leaflet_length_cm=float(leaflet_len))
 
 
-def _fruit_profile(n=20):
+def _fruit_profile(n=20, shoulder: float = 0.07, taper: float = 0.75):
+    """Radius profile along the fruit axis (0 = calyx, 1 = tip), max 1: conical for taper ~0.8, rounder below."""
     u = np.linspace(0, 1, n)
-    g = (u / (u + 0.07)) ** 0.6 * (1 - u) ** 0.75
+    g = (u / (u + shoulder)) ** 0.6 * (1 - u) ** taper
     return u, g / g.max()
 
 
 def _fruit(rng, idx, attach, axis, length, radius, ripe: bool):
     """A conical strawberry hanging from ``attach`` along ``axis`` with a calyx of sepals."""
-    u, g = _fruit_profile()
+    u, g = _fruit_profile(shoulder=rng.uniform(0.04, 0.12), taper=rng.uniform(0.5, 0.95))
     col = np.array([0.72, 0.04, 0.05]) * rng.uniform(0.85, 1.1) if ripe else \
         np.array([0.85, 0.88, 0.6]) * rng.uniform(0.85, 1.0)
     body = revolution_mesh(u * length, g * radius, attach, axis, sides=16, col=np.clip(col, 0, 1),
@@ -278,8 +283,10 @@ def _draw_plant(rng: np.random.Generator, pot: Pot, avoid_azimuth: float | None,
         elev = np.radians(rng.uniform(35, 55) + 25 * age)
         leaflet_len = (4.5 + 3.2 * scale) * rng.uniform(0.85, 1.1) * (1.0 - 0.15 * age)
         tint = tint_base * (1.0 + 0.25 * (age - 0.5)) * rng.uniform(0.92, 1.08)
+        senescence = rng.uniform(0.3, 0.9) if (age < 0.25 and rng.random() < 0.35) else 0.0
         for _ in range(10):
-            parts, curve, bv, info = _leaf(rng, i, crown, crown_r, azim, L, elev, leaflet_len, pot, tint)
+            parts, curve, bv, info = _leaf(rng, i, crown, crown_r, azim, L, elev, leaflet_len, pot, tint,
+                                           senescence)
             far = np.linalg.norm(curve[:, :2], axis=1) > pot.top_radius - 0.8
             if _ok_above_pot(bv, pot) and _ok_above_pot(curve[far], pot) and not (
                     obstacle is not None and obstacle(np.concatenate([bv, curve]))):

@@ -50,7 +50,8 @@ in vec3 v_pos; in vec3 v_nrm; in vec2 v_uv; in vec3 v_col; flat in float v_layer
 in float v_spec; in vec4 v_lpos;
 out vec4 f_color;
 void main() {
-    vec3 N = normalize(v_nrm);
+    float ln = length(v_nrm);
+    vec3 N = ln > 1e-6 ? v_nrm / ln : vec3(0.0, 0.0, 1.0);   // interpolated normals can cancel out
     vec3 V = normalize(u_eye - v_pos);
     float layer = v_layer;
     vec3 tint = v_col;
@@ -58,7 +59,9 @@ void main() {
         N = -N;
         if (abs(layer - u_leaf_top) < 0.5) { layer = u_leaf_bottom; tint = min(tint * 1.35, vec3(1.0)); }
     }
-    vec3 albedo = pow(texture(u_tex, vec3(v_uv, layer)).rgb, vec3(2.2)) * pow(tint, vec3(2.2));
+    // MSAA evaluates attributes at the pixel centre, possibly outside the triangle: clamp extrapolations
+    vec3 albedo = pow(clamp(texture(u_tex, vec3(v_uv, layer)).rgb, 0.0, 1.0), vec3(2.2))
+                * pow(clamp(tint, 0.0, 1.0), vec3(2.2));
     vec3 lp = v_lpos.xyz / v_lpos.w * 0.5 + 0.5;
     float sh = 1.0;
     if (lp.x > 0.0 && lp.x < 1.0 && lp.y > 0.0 && lp.y < 1.0 && lp.z < 1.0) {
@@ -69,9 +72,10 @@ void main() {
     vec3 light = u_key_col * max(ndl, 0.0) * sh + u_fill_col * max(dot(N, u_fill_dir), 0.0) + hemi;
     if (abs(v_cls - u_leaf_cls) < 0.5 && ndl < 0.0)   // light through a back-lit leaf
         light += 0.35 * u_key_col * (-ndl) * sh * vec3(0.8, 1.0, 0.5);
-    vec3 H = normalize(u_key_dir + V);
+    vec3 Hv = u_key_dir + V;
+    vec3 H = dot(Hv, Hv) > 1e-12 ? normalize(Hv) : N;
     float spec = v_spec * pow(max(dot(N, H), 0.0), 60.0) * sh * step(0.0, ndl);
-    f_color = vec4(albedo * light + spec * u_key_col, 1.0);
+    f_color = vec4(max(albedo * light + spec * u_key_col, vec3(0.0)), 1.0);
 }
 """
 

@@ -64,7 +64,8 @@ class SensorModel:
     def calibrate(self, linear: np.ndarray, target: float = 0.2) -> None:
         """Auto-exposure once per capture: the frame's median luminance maps to ``target``."""
         lum = linear @ np.array([0.2126, 0.7152, 0.0722], np.float32)
-        self.base_gain = float(target / max(np.median(lum), 1e-4))
+        med = np.nanmedian(lum)
+        self.base_gain = float(target / max(med, 1e-4)) if np.isfinite(med) else 1.0
 
     def settings(self) -> dict:
         return dict(base_gain=self.base_gain, exposure_drift_ev_max=float(np.abs(self.exposure_ev).max(initial=0)),
@@ -77,7 +78,7 @@ class SensorModel:
         """Linear radiance ``[H, W, 3]`` float32 of frame ``i`` -> sRGB uint8 ``[H, W, 3]``."""
         import cv2
 
-        img = linear * np.float32(self.base_gain * 2.0 ** self.exposure_ev[i]) * self.wb[i].astype(np.float32)
+        img = np.nan_to_num(linear, nan=0.0, posinf=0.0, neginf=0.0) * np.float32(self.base_gain * 2.0 ** self.exposure_ev[i]) * self.wb[i].astype(np.float32)
         H, W = img.shape[:2]
         L = float(self.blur_px[i])
         if L > 0.25:
