@@ -113,13 +113,14 @@ def main() -> int:
 
     from plantsplat.io import write_json_atomic
     from plantsplat.log import setup_logging
-    from plantsplat.traits import accuracy_table, format_table, measure_traits, scatter_plots
+    from plantsplat.traits import TraitSettings, accuracy_table, format_table, measure_traits, scatter_plots
 
     setup_logging(quiet=True)
     info = machine_info()
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_traits_"))
     variants = ("gt", "gt_unscaled", "noisy", "noisy_unscaled")
     est: dict[str, dict[str, dict]] = {v: {} for v in variants}
+    robust: dict[str, dict[str, dict]] = {v: {} for v in variants}
     truth: dict[str, dict] = {}
     per_plant = []
     synth_s = 0.0
@@ -146,6 +147,7 @@ def main() -> int:
             e = {k: res.traits.get(k) for k in TRAITS}
             e["ripe_fruit_count"] = e["fruit_count"]
             est[v][pid] = e
+            robust[v][pid] = dict(res.robust)
             row[v] = {"traits": e, "quality": res.quality, "reasons": res.reasons, "seconds": dt,
                       "scale": {k: res.scale.get(k) for k in ("source", "scale", "aruco_vs_planes_pct",
                                                                "cube_edge_cm_planes", "up_method")}}
@@ -160,6 +162,8 @@ def main() -> int:
         per_plant.append(row)
     keys = [*TRAITS, "ripe_fruit_count"]
     tables = {v: accuracy_table(est[v], truth, keys) for v in variants}
+    robust_keys = ["height_cm", "width1_cm", "width2_cm"]
+    robust_tables = {v: accuracy_table(robust[v], truth, robust_keys) for v in variants}
     res_dir = args.out.parent
     for v in variants:
         scatter_plots(est[v], truth, ["height_cm", "width1_cm", "width2_cm"], res_dir / f"traits_scatter_{v}.png",
@@ -183,6 +187,9 @@ def main() -> int:
         "reconstructions": "not run: training one splat per plant is beyond this CPU-only benchmark",
         "tables": tables,
         "tables_markdown": {v: format_table({k: tables[v][k] for k in keys}) for v in variants},
+        "robust_trim": TraitSettings().trim,
+        "robust_tables": robust_tables,
+        "robust_tables_markdown": {v: format_table(robust_tables[v]) for v in variants},
         "mean_seconds_per_plant": seconds,
         "synth_seconds_total": synth_s,
         "targets_met": targets,
@@ -192,6 +199,8 @@ def main() -> int:
     for v in variants:
         print(f"\n### {v}  (mean {seconds[v]:.2f} s per plant)\n")
         print(out["tables_markdown"][v])
+        print(f"robust (trimmed {TraitSettings().trim}) height/widths:\n")
+        print(out["robust_tables_markdown"][v])
     print(json.dumps(targets))
     print(f"wrote {args.out}")
     return 0
