@@ -25,7 +25,7 @@ import numpy as np
 
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_image, read_json, write_text_atomic
-from plantsplat.log import get_logger
+from plantsplat.log import get_logger, progress
 from plantsplat.report import html as H
 from plantsplat.report.figures import camera_path_png, contact_sheet, pick_evenly, psnr, read_cameras, render_pairs
 from plantsplat.report.splat import encode_splat, read_points_ply, read_splat_ply
@@ -337,7 +337,7 @@ def build_report_html(ws: Workspace, opts: ReportOptions | None = None) -> tuple
         ("runtimes", "Run times per stage", lambda: _runtimes_section(ws, parts)),
     ]
     sections = []
-    for sec_id, title, fn in steps:
+    for sec_id, title, fn in progress(steps, "report sections"):
         t0 = time.perf_counter()
         sections.append(H.section(sec_id, title, _guard(parts, title, fn)))
         log.debug("report section %s: %.2f s", sec_id, time.perf_counter() - t0)

@@ -82,7 +82,7 @@
     scene.add(grid);
 
     var needsRender = true, autoRotate = false, interacting = false, splat = null, points = null, spark = null;
-    var preview = null, usePreview = false, previewCount = 0;  // preview: the most visible Gaussians, drawn while moving when slow
+    var preview = null, usePreview = false, previewCount = 0, memory = null;  // preview: the most visible Gaussians, drawn while moving when slow
     var orbitJob = null, renderWaiters = [];
     function requestRender() { needsRender = true; }
 
@@ -150,6 +150,10 @@
         else turn((2 * Math.PI) / orbitJob.frames);
       }
       if (moving) { needsRender = true; lastMoveT = now; }
+      if (moving && lastFrameT === null && adaptive && memory) {
+        // motion starts again: resume at the settings the last motion settled on
+        setRatio(memory.ratio); usePreview = memory.preview && !!preview; applyVisibility();
+      }
       if (adaptive && lastFrameT !== null && moving) {
         var dt = now - lastFrameT;
         frameEma = frameEma === null ? dt : 0.7 * frameEma + 0.3 * dt;
@@ -175,6 +179,7 @@
         }
       }
       if (!moving && (ratio !== fullRatio || usePreview) && now - lastMoveT > 250) {
+        memory = { ratio: ratio, preview: usePreview };
         setRatio(fullRatio); usePreview = false; applyVisibility(); frameEma = null; needsRender = true;
       }
       lastFrameT = moving ? now : null;
@@ -229,7 +234,10 @@
     api.setMode = setMode;
     api.home = function () { homeView(); controls.target.copy(center); controls.update(); requestRender(); };
     api.setAutoRotate = function (on) { autoRotate = !!on; requestRender(); };
-    api.setAdaptive = function (on) { adaptive = !!on; if (!adaptive) { setRatio(fullRatio); usePreview = false; applyVisibility(); } };
+    api.setAdaptive = function (on) {
+      adaptive = !!on;
+      if (!adaptive) { setRatio(fullRatio); usePreview = false; memory = null; applyVisibility(); }
+    };
     // resolves once the next frame has been rendered and presented
     api.rendered = function () { return new Promise(function (res) { renderWaiters.push(res); requestRender(); }); };
     // turn the camera a full circle in `frames` displayed frames; resolves with the frame rate
