@@ -1,7 +1,8 @@
 """Video (or image folder) -> a set of sharp, spread-out frames in a workspace's ``images/``.
 
 The capture is cut into ``num`` equal stretches (by source frame index); in each stretch the
-sharpest frame (variance of the Laplacian of the luma, measured at the working size) is kept.
+sharpest frame (variance of the Laplacian of the luma, measured at half the working size for
+videos, at the working size for image folders) is kept.
 Frames far blurrier than the capture's typical frame and near-duplicates of the previously kept
 frame (the camera stood still) are dropped. Kept frames are rotated upright (the phone's display
 matrix), downscaled so the longer side is at most ``max_size`` and written as
@@ -251,11 +252,12 @@ def _select_from_video(path: Path, num: int, max_size: int) -> tuple[list, dict]
                         w0, h0 = h0, w0
                     sel = _Selector(total, n_take, working_size(w0, h0, max_size))
                 gray = _luma(frame)
-                w, h = sel.size
+                w, h = sel.size  # sharpness is measured at half the working size (cheap, blur still shows)
+                sw, sh = max(8, w // 2), max(8, h // 2)
                 if info["rotation"] in (90, 270):
-                    small = cv2.resize(gray, (h, w), interpolation=cv2.INTER_AREA)
+                    small = cv2.resize(gray, (sh, sw), interpolation=cv2.INTER_AREA)
                 else:
-                    small = cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA)
+                    small = cv2.resize(gray, (sw, sh), interpolation=cv2.INTER_AREA)
                 sel.push(decoded, small, frame, finish)
                 decoded += 1
                 bar.advance(task)

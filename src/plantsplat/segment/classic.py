@@ -53,9 +53,9 @@ class ClassicSettings:
     """Longer side (px) of the downscaled masks used for the visual hull and 2D analysis."""
     hull_voxels: int = 72
     """Voxels along each horizontal side of the visual-hull grid."""
-    hull_keep_fraction: float = 0.8
+    hull_keep_fraction: float = 0.9
     """A voxel is plant when it falls on plant colour in at least this fraction of the views seeing it."""
-    roi_margin_cm: float = 2.5
+    roi_margin_cm: float = 1.5
     """Margin (cm) around the projected plant hull inside which plant-coloured pixels are accepted."""
     join_gap_cm: float = 3.0
     """Hull pieces within this distance (cm) of the plant belong to it (separated leaves, fruit)."""
@@ -67,6 +67,10 @@ class ClassicSettings:
     """Plant pieces smaller than this fraction of the image are dropped as specks."""
     fill_holes: float = 1.5e-4
     """Holes smaller than this fraction of the image are filled."""
+    feature_size: int = 480
+    """Longer side (px) of the gray frames used to locate frames without visible markers (SIFT + PnP); 0 = off."""
+    cube_from_features: bool = True
+    """Draw the cube also in frames located by features (not by their own markers)."""
     min_poses: int = 6
     """Fewer frames with a cube pose than this: fall back to the 2D plant locator."""
 
@@ -113,6 +117,7 @@ class ClassicSegmenter:
         s = self.s
         dets: list[dict[int, np.ndarray]] = []
         smalls: list[np.ndarray] = []
+        grays: list[np.ndarray] = []
         size = None
         for p in progress(image_paths, "segment: markers and colours"):
             rgb = read_image(p)
@@ -128,16 +133,19 @@ class ClassicSegmenter:
             sw, sh, _ = _small_size(w, h, s.analysis_size)
             small = cv2.resize(strong.astype(np.uint8) * 255, (sw, sh), interpolation=cv2.INTER_AREA) >= 48
             smalls.append(small)
+            if s.feature_size:
+                fw, fh, _ = _small_size(w, h, s.feature_size)
+                grays.append(cv2.resize(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), (fw, fh), interpolation=cv2.INTER_AREA))
         assert size is not None
         ctx = CaptureContext(size=size, detections=dets)
         ctx.info["frames_with_markers"] = int(sum(1 for d in dets if d))
         if s.use_cube:
-            self._geometry(ctx, smalls)
+            self._geometry(ctx, smalls, grays)
         ctx.info["plant_locator"] = "3d" if ctx.hull_points is not None else "2d"
         self._smalls = smalls
         return ctx
 
-    def _geometry(self, ctx: CaptureContext, smalls: list[np.ndarray]) -> None:
+    def _geometry(self, ctx: CaptureContext, smalls: list[np.ndarray], grays: list[np.ndarray]) -> None:
         import cv2
 
         s = self.s
@@ -148,6 +156,17 @@ class ClassicSegmenter:
         ctx.K, ctx.dist, kinfo = est
         ctx.info["intrinsics"] = kinfo
         ctx.poses, rms, ctx.pose_source = geo.cube_poses(ctx.detections, ctx.K, ctx.dist, s.cube)
+        n_marker_pose = sum(p is not None for p in ctx.poses)
+        if s.feature_size and grays and n_marker_pose >= 2 and n_marker_pose < len(ctx.poses):
+            fw, fh, fs = _small_size(*ctx.size, s.feature_size)
+            Kf = ctx.K.copy()
+            Kf[:2] *= fs
+            Kf[0, 2] = (ctx.K[0, 2] + 0.5) * fs - 0.5
+            Kf[1, 2] = (ctx.K[1, 2] + 0.5) * fs - 0.5
+            log.info("segment: locating %d frames without markers from image features", len(ctx.poses) - n_marker_pose)
+            ctx.poses, found = geo.poses_from_features(grays, ctx.poses, Kf)
+            ctx.pose_source = ["features" if f else h for f, h in zip(found, ctx.pose_source)]
+            ctx.info["frames_with_feature_pose"] = int(sum(found))
         n_pose = sum(p is not None for p in ctx.poses)
         ctx.info["frames_with_cube_pose"] = n_pose
         ctx.info["frames_with_interpolated_pose"] = sum(h == "interpolated" for h in ctx.pose_source)
@@ -287,7 +306,8 @@ class ClassicSegmenter:
         plant_fraction = float(plant.mean())
         cube = np.zeros((H, W), bool)
         pose = ctx.pose_source[i] if ctx.pose_source else "none"
-        if s.use_cube and ctx.poses and ctx.pose_source[i] == "markers" and ctx.K is not None:
+        draw = ("markers", "features") if s.cube_from_features else ("markers",)
+        if s.use_cube and ctx.poses and ctx.pose_source[i] in draw and ctx.K is not None:
             cube = geo.cube_silhouette(ctx.poses[i], ctx.K, ctx.dist, (W, H), s.cube)
         fg = plant | cube
         return plant, cube, {"plant_fraction": plant_fraction, "cube_fraction": float(cube.mean()),

@@ -286,3 +286,99 @@ def plant_component(
             break
         keep |= np.isin(lab, add)
     return keep
+
+
+def poses_from_features(
+    grays: list[np.ndarray],
+    poses: list[np.ndarray | None],
+    K: np.ndarray,
+    window: int = 2,
+    min_inliers: int = 15,
+    max_features: int = 2000,
+) -> tuple[list[np.ndarray | None], list[bool]]:
+    """Camera poses for frames without a cube pose, from SIFT matches with nearby posed frames.
+
+    For a frame ``j`` without a pose, the two nearest frames with a pose (within ``window`` frames)
+    are matched with SIFT (ratio test); the matches are triangulated with their known cameras, and
+    ``j`` is located by RANSAC PnP on its matches to those 3D points. ``grays``: gray uint8 frames
+    ``[h, w]``, ``K`` for that size. Returns the completed pose list and a flag per frame (True =
+    pose found here). Poses are checked: enough inliers, sub-2-px refined error, and a camera centre
+    no farther from its nearest neighbour's than the camera moves per frame there.
+    """
+    import cv2
+
+    n = len(poses)
+    sift = cv2.SIFT_create(nfeatures=max_features)
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    feats: dict[int, tuple] = {}
+
+    def features(i):
+        if i not in feats:
+            kp, des = sift.detectAndCompute(grays[i], None)
+            pts = np.array([k.pt for k in kp], np.float64).reshape(-1, 2)
+            feats[i] = (pts, des)
+        return feats[i]
+
+    def matches(i, j):
+        (pi, di), (pj, dj) = features(i), features(j)
+        if di is None or dj is None or len(di) < 8 or len(dj) < 8:
+            return np.zeros((0, 2), np.int64)
+        out = []
+        for m in matcher.knnMatch(di, dj, k=2):
+            if len(m) == 2 and m[0].distance < 0.75 * m[1].distance:
+                out.append((m[0].queryIdx, m[0].trainIdx))
+        return np.array(out, np.int64).reshape(-1, 2)
+
+    def P(T):
+        return K @ T[:3, :]
+
+    result = list(poses)
+    found = [False] * n
+    posed = [i for i in range(n) if poses[i] is not None]
+    for j in range(n):
+        if poses[j] is not None:
+            continue
+        near = sorted((abs(i - j), i) for i in posed if 0 < abs(i - j) <= window)
+        if len(near) < 2:
+            continue
+        a, b = near[0][1], near[1][1]
+        mab = matches(a, b)
+        if len(mab) < min_inliers:
+            continue
+        pa, pb = features(a)[0][mab[:, 0]], features(b)[0][mab[:, 1]]
+        X = cv2.triangulatePoints(P(poses[a]), P(poses[b]), pa.T, pb.T)
+        X = (X[:3] / X[3:]).T  # [M, 3]
+        ok = np.ones(len(X), bool)
+        for T, p in ((poses[a], pa), (poses[b], pb)):
+            uv, z = project(X, T, K)
+            ok &= (z > 0) & (np.linalg.norm(uv - p, axis=1) < 2.0)
+        point_of_a = {int(k): X[m] for m, k in enumerate(mab[:, 0]) if ok[m]}
+        point_of_b = {int(k): X[m] for m, k in enumerate(mab[:, 1]) if ok[m]}
+        obj, img = [], []
+        pj = features(j)[0]
+        for other, table in ((a, point_of_a), (b, point_of_b)):
+            for qi, ti in matches(j, other):
+                if int(ti) in table:
+                    obj.append(table[int(ti)])
+                    img.append(pj[qi])
+        if len(obj) < min_inliers:
+            continue
+        obj_a, img_a = np.array(obj, np.float64), np.array(img, np.float64)
+        okp, rvec, tvec, inl = cv2.solvePnPRansac(obj_a, img_a, K, None, reprojectionError=3.0, iterationsCount=300,
+                                                  confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
+        if not okp or inl is None or len(inl) < min_inliers:
+            continue
+        inl = inl.ravel()
+        rvec, tvec = cv2.solvePnPRefineLM(obj_a[inl], img_a[inl], K, None, rvec, tvec)
+        proj, _ = cv2.projectPoints(obj_a[inl], rvec, tvec, K, None)
+        err = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img_a[inl]) ** 2, axis=1))))
+        T = np.eye(4)
+        T[:3, :3] = cv2.Rodrigues(rvec)[0]
+        T[:3, 3] = np.asarray(tvec).ravel()
+        c = np.linalg.inv(T)[:3, 3]
+        ca, cb = np.linalg.inv(poses[a])[:3, 3], np.linalg.inv(poses[b])[:3, 3]
+        step = np.linalg.norm(ca - cb) / abs(a - b)  # camera travel per frame around here
+        if err > 2.0 or np.linalg.norm(c - ca) > 1.2 * step * abs(a - j) + 1.0:
+            continue
+        result[j], found[j] = T, True
+    return result, found
