@@ -40,7 +40,7 @@ _T_EPS = _F32(1e-4)
 _FM = {"reassoc", "contract", "arcp", "nsz", "afn"}
 _NGRAD = 10  # per-intersection gradient: mean x, mean y, conic a, b, c, opacity, r, g, b, depth
 _LANES = 8  # tile_size must be a multiple of this (so tile_size^2 is a multiple of _BLOCK)
-_BLOCK = 32  # pixel loops run over multiples of this many pixels (vector width x unroll)
+_BLOCK = 16  # pixel loops run over multiples of this many pixels (vector width x unroll)
 _SIG_MAX = _F32(6.0)  # exp(-6) < 1/255: larger sigma can never give a visible alpha
 _LOG2E = _F32(1.4426950408889634)
 _LN2_HI = _F32(0.693145751953125)
@@ -79,13 +79,13 @@ def _exp_neg(s):  # pragma: no cover - numba
 
 @njit(inline="always", cache=True)
 def _span(m, r, origin, ts):  # pragma: no cover - numba
-    """Tile-local pixel range [lo, hi) whose centres lie within r + 1 of m along one axis.
+    """Tile-local pixel range [lo, hi) whose centres lie within r + 0.05 of m along one axis.
 
     Beyond the screen radius r (>= extent * sqrt(cov_ii), with extent = sqrt(2 ln(255 opacity)))
     the Mahalanobis distance alone makes alpha < 1/255, so those pixels can be skipped exactly.
     """
-    lo = min(max(math.ceil(m - _F32(r) - _F32(1.5)) - origin, 0.0), ts)
-    hi = min(max(math.floor(m + _F32(r) + _HALF) - origin + 1.0, 0.0), ts)
+    lo = min(max(math.ceil(m - _F32(r) - _F32(0.55)) - origin, 0.0), ts)
+    hi = min(max(math.floor(m + _F32(r) - _F32(0.45)) - origin + 1.0, 0.0), ts)
     return int(lo), int(hi)
 
 
