@@ -265,3 +265,65 @@ def up_vector(cal: Calibration | None) -> np.ndarray | None:
     if cal is None:
         return None
     return cal.R.T @ np.array([0.0, 0.0, 1.0])
+
+
+def refine_with_cube(rec, detections: dict, cal: Calibration, cube: CubeSpec = CubeSpec(), num_threads: int = 2) -> int:
+    """Bundle adjustment of a model already in the cube frame, with the marker corners as control points.
+
+    Every marker corner seen in two or more frames (detections kept by :func:`calibrate`) is added
+    to ``rec`` as a 3D point held constant at its known position on the cube (cm), observed at its
+    detected sub-pixel corners; cameras, intrinsics and the other points are refined together. The
+    cube's metric geometry then constrains the focal length and scale along with the SfM tracks.
+    Returns the number of control points added (0: nothing done).
+    """
+    import pycolmap
+
+    rejected = {(n, m) for n, m, _ in cal.detections_rejected}
+    by_name = {im.name: im for im in rec.images.values() if im.has_pose}
+    tracks: dict[tuple[int, int], list] = {}
+    for name, det in detections.items():
+        im = by_name.get(name)
+        if im is None:
+            continue
+        for mid, corners in det.items():
+            if (name, mid) in rejected or cube.face_of(mid) is None:
+                continue
+            for k in range(4):
+                tracks.setdefault((mid, k), []).append((im.image_id, corners[k]))
+    tracks = {key: obs for key, obs in tracks.items() if len(obs) >= 2}
+    if len(tracks) < 4:
+        return 0
+    # append the corner observations to each image's 2D points
+    new_pts: dict[int, list] = {}
+    for key, obs in tracks.items():
+        for image_id, xy in obs:
+            new_pts.setdefault(image_id, []).append((key, xy))
+    index: dict[tuple[int, tuple[int, int]], int] = {}
+    for image_id, items in new_pts.items():
+        im = rec.images[image_id]
+        base = len(im.points2D)
+        for j, (key, xy) in enumerate(items):
+            im.points2D.append(pycolmap.Point2D(np.asarray(xy, dtype=np.float64).reshape(2, 1)))
+            index[(image_id, key)] = base + j
+    ids = []
+    for (mid, k), obs in tracks.items():
+        track = pycolmap.Track()
+        for image_id, _ in obs:
+            track.add_element(image_id, index[(image_id, (mid, k))])
+        ids.append(rec.add_point3D(cube.marker_corners(mid)[k].reshape(3, 1), track, np.array([255, 255, 255], np.uint8)))
+    config = pycolmap.BundleAdjustmentConfig()
+    for im in by_name.values():
+        config.add_image(im.image_id)
+    for pid in ids:
+        config.add_constant_point(pid)
+    opts = pycolmap.BundleAdjustmentOptions()
+    opts.refine_focal_length = True
+    opts.refine_extra_params = True
+    opts.refine_principal_point = False
+    opts.print_summary = False
+    opts.ceres.use_gpu = False
+    opts.ceres.solver_options.num_threads = num_threads
+    opts.ceres.solver_options.max_num_iterations = 50
+    adjuster = pycolmap.create_default_bundle_adjuster(opts, config, rec)
+    adjuster.solve()
+    return len(ids)

@@ -48,13 +48,13 @@ WORK_DIR = ".plantsplat/colmap"
 class PosesConfig:
     """Options of the poses stage."""
 
-    matcher: Literal["auto", "exhaustive", "sequential"] = "auto"
-    """Feature matching: exhaustive (robust, up to ~160 frames), sequential (video order, wide window), auto."""
+    matcher: Literal["auto", "guided", "exhaustive", "sequential"] = "auto"
+    """Pairs to match: guided (video neighbours + frames seeing the cube from similar directions), exhaustive, sequential (video order), auto (guided when most frames see the cube)."""
     mapper: Literal["auto", "incremental", "global"] = "auto"
     """Mapping: auto (incremental, cube-checked fragment merge, global fallback), incremental, global."""
     camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "RADIAL"
     """COLMAP camera model shared by all frames (phones: RADIAL)."""
-    max_features: int = 4096
+    max_features: int = 2048
     """SIFT features per frame."""
     import_colmap: Path | None = None
     """Use this COLMAP model (folder with cameras/images/points3D, .bin or .txt) instead of running SfM."""
@@ -64,6 +64,8 @@ class PosesConfig:
     """Calibrate scale, gravity and origin with the ArUco cube (--no-calibrate keeps the model as it is)."""
     max_residual_px: float = 3.0
     """Marker detections reprojecting worse than this (pixels) are rejected; the model check uses it too."""
+    cube_bundle_adjustment: bool = True
+    """After calibration, bundle-adjust with the cube's marker corners as fixed control points (SfM only, not imports)."""
     min_registered: float = 0.8
     """Fail (exit code 3) when fewer than this fraction of the frames register."""
     cube_size: float = 10.0
@@ -213,7 +215,13 @@ def _run_sfm(ws: Workspace, names: list[str], cfg: PosesConfig, detections: dict
     opts = cfg.sfm_options()
     work = ws.root / WORK_DIR
     timings = report["timings"]
-    db, matcher, t = sfm.extract_and_match(ws.images_dir, names, work, opts)
+    directions = {}
+    if detections and opts.matcher in ("auto", "guided"):
+        from plantsplat.io import read_image
+
+        h, w = read_image(ws.images_dir / names[0], mode="gray").shape
+        directions = sfm.view_directions(detections, (w, h), cube)
+    db, matcher, t = sfm.extract_and_match(ws.images_dir, names, work, opts, directions)
     timings.update(t)
     report["matcher"] = matcher
     n = len(names)
@@ -295,8 +303,8 @@ def _run_sfm(ws: Workspace, names: list[str], cfg: PosesConfig, detections: dict
                 rec, cal = cont[0], ccal
         timings["continue_s"] = time.perf_counter() - t0
 
-    # global mapping as the last resort
-    if rec.num_reg_images() < n:
+    # global mapping as the last resort (less accurate, so only when too many frames are missing)
+    if rec.num_reg_images() < cfg.min_registered * n:
         t0 = time.perf_counter()
         log.info("SfM: %d frames still missing, trying global mapping", n - rec.num_reg_images())
         glob = sfm.global_sfm(db, ws.images_dir, work / "global", opts)
@@ -405,6 +413,23 @@ def estimate_poses(ws: Workspace | str | Path, cfg: PosesConfig | None = None, f
         report["events"].append("final model fails the cube check")
     if cal is not None:
         rec.transform(cal.to_pycolmap())
+        if cal.consistent and cfg.cube_bundle_adjustment and report["source"] == "sfm":
+            from plantsplat.poses.calibrate import refine_with_cube
+
+            t0 = time.perf_counter()
+            log.info("bundle adjustment with the cube's marker corners as control points")
+            with colmap_logging(cfg.colmap_log):
+                n_ctrl = refine_with_cube(rec, detections, cal, cube, cfg.num_threads)
+            if n_ctrl:
+                cal2 = calibrate(rec, detections, cube, cfg.max_residual_px)
+                if cal2 is not None and cal2.consistent:
+                    rec.transform(cal2.to_pycolmap())  # a small correction: the control points fix the frame
+                    composed = cal2.matrix() @ cal.matrix()
+                    s = float(np.cbrt(np.linalg.det(composed[:3, :3])))
+                    cal2.scale, cal2.R, cal2.t = s, composed[:3, :3] / s, composed[:3, 3]
+                    cal = cal2
+                report["events"].append(f"bundle adjustment with {n_ctrl} cube corners as control points")
+            report["timings"]["cube_ba_s"] = time.perf_counter() - t0
         report["scale_source"] = "aruco"
         report["similarity"] = cal.summary()
         report["up_vector_model"] = up_vector(cal)

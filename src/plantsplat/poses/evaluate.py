@@ -78,3 +78,19 @@ def transforms_c2w(data: dict) -> dict[str, np.ndarray]:
         Path(f["file_path"]).name: np.asarray(f["transform_matrix"], dtype=np.float64) @ OPENCV_TO_OPENGL
         for f in data["frames"]
     }
+
+
+def synth_reference(ground_truth: dict) -> dict[str, np.ndarray]:
+    """Ground-truth cameras of a ``plantsplat synth`` capture, in its cube frame (our world frame).
+
+    ``ground_truth.json`` stores ``c2w`` in the synth world (origin below the pot); the cube stands at
+    ``cube.T_world_cube``, so the reference in the cube frame is ``inv(T_world_cube) @ c2w``.
+    """
+    from pathlib import Path
+
+    T_cube_world = np.linalg.inv(np.asarray(ground_truth["cube"]["T_world_cube"], dtype=np.float64))
+    out = {}
+    for f in ground_truth["frames"]:
+        name = Path(f.get("file") or f.get("name")).name
+        out[name] = T_cube_world @ np.asarray(f["c2w"], dtype=np.float64)
+    return out

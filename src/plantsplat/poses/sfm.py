@@ -23,6 +23,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from plantsplat.errors import PlantsplatError
 from plantsplat.log import get_logger
 
@@ -38,7 +40,9 @@ class SfmOptions:
     camera_model: str = "RADIAL"
     """COLMAP camera model shared by all frames (phones: RADIAL = f, cx, cy, k1, k2)."""
     matcher: str = "auto"
-    """'exhaustive', 'sequential', or 'auto' (exhaustive up to exhaustive_max_frames frames)."""
+    """'guided' (video neighbours + frames that see the cube from similar directions), 'exhaustive',
+    'sequential', or 'auto' (guided when most frames see the cube, else exhaustive up to
+    exhaustive_max_frames frames, else sequential)."""
     mapper: str = "auto"
     """'incremental', 'global', or 'auto' (incremental, global when it registers more frames)."""
     max_features: int = 4096
@@ -47,10 +51,18 @@ class SfmOptions:
     """SIFT peak threshold (COLMAP: 0.0067); lower finds more features on plain walls and small frames."""
     max_image_size: int = 1600
     """Longest side used for feature extraction (pixels); larger frames are downscaled."""
-    exhaustive_max_frames: int = 160
+    exhaustive_max_frames: int = 80
     """With matcher 'auto', frame count above which sequential matching is used."""
     sequential_overlap: int = 20
     """Sequential matching: neighbours matched on each side (plus quadratic steps beyond)."""
+    guided_window: int = 5
+    """Guided matching: video neighbours matched on each side (plus quadratic steps beyond)."""
+    guided_neighbours: int = 20
+    """Guided matching: frames matched per frame by closest viewing direction of the cube."""
+    guided_max_angle_deg: float = 45.0
+    """Guided matching: largest angle between two frames' directions from the cube."""
+    ransac_max_trials: int = 2000
+    """Two-view geometric verification: RANSAC trials per pair (COLMAP: 10000)."""
     num_threads: int = 2
     """CPU threads for extraction, matching and mapping."""
     seed: int = 0
@@ -102,18 +114,86 @@ def colmap_logging(verbose: bool):
         pycolmap.logging.verbose_level = old_v
 
 
-def choose_matcher(opts: SfmOptions, n: int) -> str:
+def choose_matcher(opts: SfmOptions, n: int, n_cube_poses: int = 0) -> str:
     if opts.matcher == "auto":
+        if n_cube_poses >= 0.5 * n and n > 2 * opts.guided_window + 2:
+            return "guided"
         return "exhaustive" if n <= opts.exhaustive_max_frames else "sequential"
-    if opts.matcher not in ("exhaustive", "sequential"):
-        raise PlantsplatError(f"--matcher {opts.matcher!r}: use exhaustive, sequential or auto", exit_code=2)
+    if opts.matcher not in ("guided", "exhaustive", "sequential"):
+        raise PlantsplatError(f"--matcher {opts.matcher!r}: use guided, exhaustive, sequential or auto", exit_code=2)
     return opts.matcher
 
 
-def extract_and_match(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions) -> tuple[Path, str, dict]:
+def view_directions(
+    detections: dict[str, dict[int, np.ndarray]], image_size: tuple[int, int], cube
+) -> dict[str, np.ndarray]:
+    """Unit direction from the cube to the camera (cube frame) for every frame whose markers give a pose.
+
+    The intrinsics are not known yet: a focal length of the image's longest side is assumed, which
+    changes the distance far more than the direction.
+    """
+    from plantsplat.cube import cube_pose
+
+    w, h = image_size
+    f = float(max(w, h))
+    K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
+    out = {}
+    for name, det in detections.items():
+        res = cube_pose(det, K, None, cube)
+        if res is None:
+            continue
+        T = res[0]  # cam_from_cube
+        c = -T[:3, :3].T @ T[:3, 3]  # camera centre in the cube frame
+        c = c - np.array([0.0, 0.0, cube.size / 2])
+        if np.linalg.norm(c) > 0:
+            out[name] = c / np.linalg.norm(c)
+    return out
+
+
+def guided_pairs(names: list[str], directions: dict[str, np.ndarray], opts: SfmOptions) -> list[tuple[str, str]]:
+    """Image pairs to match: video neighbours (window + quadratic steps) and cube-guided neighbours.
+
+    Each frame with a cube direction is paired with up to ``guided_neighbours`` frames whose
+    direction from the cube is within ``guided_max_angle_deg``, which links the rings of an orbit
+    capture and closes its loops without matching every pair.
+    """
+    n = len(names)
+    pairs: set[tuple[int, int]] = set()
+    steps = set(range(1, opts.guided_window + 1))
+    k = 1
+    while 2**k < n:
+        steps.add(2**k + opts.guided_window - 1)
+        k += 1
+    for i in range(n):
+        for d in steps:
+            if i + d < n:
+                pairs.add((i, i + d))
+    idx = [i for i, nm in enumerate(names) if nm in directions]
+    if len(idx) > 1:
+        D = np.array([directions[names[i]] for i in idx])  # [M, 3]
+        cos = np.clip(D @ D.T, -1.0, 1.0)  # [M, M]
+        np.fill_diagonal(cos, -2.0)
+        cmin = np.cos(np.radians(opts.guided_max_angle_deg))
+        for a, i in enumerate(idx):
+            order = np.argsort(-cos[a])[: opts.guided_neighbours]
+            for b in order:
+                if cos[a, b] >= cmin:
+                    j = idx[b]
+                    pairs.add((min(i, j), max(i, j)))
+    return [(names[i], names[j]) for i, j in sorted(pairs)]
+
+
+def extract_and_match(
+    image_dir: Path,
+    names: list[str],
+    work_dir: Path,
+    opts: SfmOptions,
+    directions: dict[str, np.ndarray] | None = None,
+) -> tuple[Path, str, dict]:
     """Extract SIFT features and match them into ``work_dir/database.db`` (rebuilt from scratch).
 
-    Returns ``(database path, matcher used, timings)``.
+    ``directions`` (from :func:`view_directions`) enables guided matching. Returns
+    ``(database path, matcher used, timings)``; timings include ``pairs``, the number of pairs matched.
     """
     import pycolmap
 
@@ -147,15 +227,32 @@ def extract_and_match(image_dir: Path, names: list[str], work_dir: Path, opts: S
         )
     timings["extract_s"] = time.perf_counter() - t
 
-    matcher = choose_matcher(opts, len(names))
+    directions = directions or {}
+    matcher = choose_matcher(opts, len(names), len(directions))
     t = time.perf_counter()
     mopts = pycolmap.FeatureMatchingOptions()
     mopts.num_threads = opts.num_threads
     verif = pycolmap.TwoViewGeometryOptions()
     verif.ransac.random_seed = opts.seed
-    log.info("SfM: %s matching", matcher)
+    verif.ransac.max_num_trials = opts.ransac_max_trials
+    verif.detect_watermark = False
+    n = len(names)
+    if matcher == "guided":
+        pairs = guided_pairs(names, directions, opts)
+        timings["pairs"] = len(pairs)
+        pair_file = work_dir / "pairs.txt"
+        pair_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
+    elif matcher == "exhaustive":
+        timings["pairs"] = n * (n - 1) // 2
+    log.info("SfM: %s matching%s", matcher, f" ({timings['pairs']} pairs)" if "pairs" in timings else "")
     with colmap_logging(opts.verbose):
-        if matcher == "exhaustive":
+        if matcher == "guided":
+            pairing = pycolmap.ImportedPairingOptions()
+            pairing.match_list_path = str(pair_file)
+            pycolmap.match_image_pairs(
+                db, matching_options=mopts, pairing_options=pairing, verification_options=verif, device=device
+            )
+        elif matcher == "exhaustive":
             pycolmap.match_exhaustive(db, matching_options=mopts, verification_options=verif, device=device)
         else:
             pairing = pycolmap.SequentialPairingOptions()
