@@ -473,8 +473,8 @@ def composite_cpu(
     Example:
         >>> c, a, d = composite_cpu(torch.tensor([[4.0, 4.0]]), torch.tensor([[1.0, 0.0, 1.0]]),
         ...     torch.ones(1, 3), torch.tensor([0.5]), torch.tensor([2.0]), torch.tensor([[3, 3]]), 8, 8)
-        >>> round(float(a[3, 3, 0]), 4)
-        0.5
+        >>> round(float(a[3, 3, 0]), 4)  # 0.5 * exp(-0.5 * (0.5^2 + 0.5^2)) at pixel centre (3.5, 3.5)
+        0.3894
     """
     if tile_size % _LANES:
         from . import RasterInputError
