@@ -1,9 +1,9 @@
 """Figures for the plant report: frame contact sheet with mask overlays, camera path, render pairs.
 
 Example:
-    >>> sheet = contact_sheet(Workspace("ws/plant_01"), max_frames=24)  # doctest: +SKIP
-    >>> sheet.shape[2]
-    3
+    >>> sheet, shown, with_mask = contact_sheet(Workspace("ws/plant_01"), max_frames=24)  # doctest: +SKIP
+    >>> sheet.shape[2], shown  # doctest: +SKIP
+    (3, 24)
 """
 
 from __future__ import annotations

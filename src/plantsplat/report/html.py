@@ -39,8 +39,8 @@ def fmt_value(v: Any, digits: int = 2) -> str:
             return "n/a"
         if math.isinf(f):
             return "&infin;" if f > 0 else "&minus;&infin;"
-        if f != 0 and abs(f) < 0.1:
-            return f"{f:.3g}"
+        if f != 0 and abs(f) < 1:
+            return f"{f:.4g}"  # metrics such as SSIM 0.9875 keep their digits
         return f"{f:.{digits}f}"
     if isinstance(v, (list, tuple)):
         if len(v) > 8:
@@ -91,12 +91,6 @@ def generic_tables(d: Mapping[str, Any], title: str | None = None, depth: int = 
         out.append(f"<h4>{esc(title)}</h4>")
     if scalars:
         out.append(kv_table(scalars))
-    for k, v in records.items():  # e.g. per-view metrics as a list of dicts: one row each
-        flat = [flatten(x) for x in v]
-        cols: list[str] = []
-        for x in flat:
-            cols += [c for c in x if c not in cols]
-        out.append(f"<h4>{esc(k)}</h4>" + rows_table(flat, cols))
     for k, v in nested.items():
         if v and all(isinstance(x, Mapping) for x in v.values()):
             cols: list[str] = []
@@ -106,6 +100,12 @@ def generic_tables(d: Mapping[str, Any], title: str | None = None, depth: int = 
             out.append(f"<h4>{esc(k)}</h4>" + rows_table(rows, ["", *cols]))
         elif depth < 3:
             out.append(generic_tables(v, title=str(k), depth=depth + 1))
+    for k, v in records.items():  # e.g. per-view metrics as a list of dicts: one row each
+        flat = [flatten(x) for x in v]
+        cols: list[str] = []
+        for x in flat:
+            cols += [c for c in x if c not in cols]
+        out.append(f"<h4>{esc(k)}</h4>" + rows_table(flat, cols))
     return "".join(out)
 
 

@@ -73,7 +73,7 @@ def read_splat_ply(path: str | os.PathLike) -> SplatArrays:
 
     Example:
         >>> g = read_splat_ply("ws/export/splat.ply")  # doctest: +SKIP
-        >>> g.means.shape
+        >>> g.means.shape  # doctest: +SKIP
         (50000, 3)
     """
     path = Path(path)
@@ -110,7 +110,7 @@ def encode_splat(g: SplatArrays, max_gaussians: int | None = None) -> bytes:
 
     Example:
         >>> raw = encode_splat(g)  # doctest: +SKIP
-        >>> np.frombuffer(raw, SPLAT_DTYPE)["position"].shape
+        >>> np.frombuffer(raw, SPLAT_DTYPE)["position"].shape  # doctest: +SKIP
         (50000, 3)
     """
     n = len(g)
@@ -152,7 +152,7 @@ def read_points_ply(path: str | os.PathLike, max_points: int | None = None, seed
 
     Example:
         >>> pc = read_points_ply("ws/export/points.ply", max_points=100_000)  # doctest: +SKIP
-        >>> pc.positions.dtype, pc.colors.dtype
+        >>> pc.positions.dtype, pc.colors.dtype  # doctest: +SKIP
         (dtype('float32'), dtype('uint8'))
     """
     path = Path(path)
