@@ -226,13 +226,15 @@ def test_rendered_cube_matches_K_and_c2w_exactly(synth_capture):
                 if np.any(z <= 0):
                     continue
                 # pixel centres inside the projected quad (convex): same side of all four edges
-                sd = []
+                sd, sd_c = [], []
+                ctr = uv.mean(0)  # inside the convex quad: gives the orientation
                 for k in range(4):
                     a, b = uv[k], uv[(k + 1) % 4]
                     e = b - a
                     sd.append((e[0] * (v - a[1]) - e[1] * (u - a[0])) / np.linalg.norm(e))
-                sd = np.stack(sd)
-                sign = np.sign(np.median(sd[:, np.abs(sd).max(0) < 1e9].sum(0)))
+                    sd_c.append(e[0] * (ctr[1] - a[1]) - e[1] * (ctr[0] - a[0]))
+                sd = np.stack(sd)  # [4, H, W] signed distances of pixel centres to the edges
+                sign = np.sign(sd_c[0])
                 inside = (sign * sd > 0).all(0)
                 margin = np.abs(sd).min(0)
                 want[inside & (margin > 0.01)] = 10 + i
@@ -242,14 +244,16 @@ def test_rendered_cube_matches_K_and_c2w_exactly(synth_capture):
                 if not (inside & (margin > 2)).any():
                     continue
                 Hm = cv2_homography(uv, np.array([[0, 0], [SIZE, 0], [SIZE, SIZE], [0, SIZE]], float) * 500 / SIZE + 6)
-                pts = np.stack([u[inside & (margin > 2)], v[inside & (margin > 2)], np.ones((inside & (margin > 2)).sum())])
+                deep = inside & (margin > 2)
+                pts = np.stack([u[deep], v[deep], np.ones(deep.sum())])
                 tex = Hm @ pts
                 tx, ty = tex[0] / tex[2], tex[1] / tex[2]
                 cell_x, cell_y = (tx - 16) / 80, (ty - 16) / 80
                 far = (np.abs(cell_x - np.round(cell_x)) > 0.25) & (np.abs(cell_y - np.round(cell_y)) > 0.25) & \
                     (tx > 16) & (ty > 16) & (tx < 496) & (ty < 496)
-                ref = layers[1 + i][np.clip(ty[far].astype(int), 0, SIZE - 1), np.clip(tx[far].astype(int), 0, SIZE - 1), 0]
-                got = lin[v[inside & (margin > 2)][far], u[inside & (margin > 2)][far]].mean(1)
+                ref = layers[1 + i][np.clip(ty[far].astype(int), 0, SIZE - 1),
+                                    np.clip(tx[far].astype(int), 0, SIZE - 1), 0]
+                got = lin[v[deep][far], u[deep][far]].mean(1)
                 n_bad += int(((got > 0.25) != (ref > 127)).sum())
                 checked_cells += int(far.sum())
             known = want >= 0

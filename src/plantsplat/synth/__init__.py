@@ -22,7 +22,7 @@ FORMAT = "plantsplat-synth/1"
 
 @dataclass
 class SynthConfig:
-    """Render a synthetic phone capture of a potted strawberry plant (with a 10 cm ArUco cube) and its exact ground truth."""
+    """Render a synthetic phone capture of a potted strawberry (with a 10 cm ArUco cube) and its exact ground truth."""
 
     out: Path
     """Output folder (must be empty or absent unless --force)."""

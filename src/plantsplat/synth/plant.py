@@ -230,7 +230,8 @@ def _flower(rng, idx, centre, normal, radius):
         tt = np.cross(normal, r)
         sv = np.linspace(0, 1, 6)
         half = (np.sin(np.pi * (0.15 + 0.85 * sv)) * 0.45 * radius)[:, None]
-        ctr = centre + r[None] * (0.25 * radius + sv[:, None] * 0.75 * radius) + normal * 0.1 * radius * sv[:, None] ** 2
+        ctr = (centre + r[None] * (0.25 * radius + sv[:, None] * 0.75 * radius)
+               + normal * 0.1 * radius * sv[:, None] ** 2)
         P = np.stack([ctr - tt * half, ctr, ctr + tt * half], 1)
         UV = np.stack(np.broadcast_arrays(sv[:, None], np.array([0.2, 0.5, 0.8])[None]), -1)
         parts.append(grid_mesh(P, UV, (0.95, 0.95, 0.92), layer=T.WHITE, cls=FLOWER, instance=idx))

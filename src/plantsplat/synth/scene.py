@@ -29,7 +29,6 @@ from plantsplat.synth.mesh import (
     cylinder_mesh,
     disk_mesh,
     grid_mesh,
-    merge,
     quad_mesh,
     revolution_mesh,
     rot_z,

@@ -78,7 +78,8 @@ class SensorModel:
         """Linear radiance ``[H, W, 3]`` float32 of frame ``i`` -> sRGB uint8 ``[H, W, 3]``."""
         import cv2
 
-        img = np.nan_to_num(linear, nan=0.0, posinf=0.0, neginf=0.0) * np.float32(self.base_gain * 2.0 ** self.exposure_ev[i]) * self.wb[i].astype(np.float32)
+        gain = np.float32(self.base_gain * 2.0 ** self.exposure_ev[i]) * self.wb[i].astype(np.float32)  # [3]
+        img = np.nan_to_num(linear, nan=0.0, posinf=0.0, neginf=0.0) * gain
         H, W = img.shape[:2]
         L = float(self.blur_px[i])
         if L > 0.25:
