@@ -192,8 +192,11 @@ def sample_plant_points(n: int, out: Path) -> None:
     import numpy as np
     import open3d as o3d
 
-    mesh = o3d.io.read_triangle_mesh(str(datasets_dir() / "romi_virtual_plant_synthetic" / "ground_truth" / "VirtualPlant.obj"))
-    pts = np.asarray(mesh.sample_points_uniformly(number_of_points=n, seed=0).points, np.float32)
+    obj = datasets_dir() / "romi_virtual_plant_synthetic" / "ground_truth" / "VirtualPlant.obj"
+    # post-processing (assimp) triangulates the OBJ's quads, which the plain reader would skip
+    mesh = o3d.io.read_triangle_mesh(str(obj), enable_post_processing=True)
+    o3d.utility.random.seed(0)
+    pts = np.asarray(mesh.sample_points_uniformly(number_of_points=n).points, np.float32)
     np.save(out, pts)
 
 

@@ -1,7 +1,8 @@
 """Differentiable 3D Gaussian rasterization with one interface and three backends.
 
-- ``cpu``: numba kernels, parallel over 16x16 tiles, with a hand-written backward pass
-  (:mod:`plantsplat.raster.cpu`). The default without CUDA.
+- ``cpu``: numba kernels with hand-written backward passes: EWA projection parallel over Gaussians
+  (:mod:`plantsplat.raster.cpu_projection`), compositing parallel over 16x16 tiles and vectorised
+  over the pixels of a tile (:mod:`plantsplat.raster.cpu`). The default without CUDA.
 - ``gsplat``: gsplat's CUDA ``rasterization()`` (:mod:`plantsplat.raster.gsplat_backend`), chosen by
   ``auto`` when CUDA and gsplat are available.
 - ``reference``: slow pure-PyTorch compositing differentiated by autograd
@@ -189,8 +190,11 @@ def rasterize(
         backend: ``auto`` | ``cpu`` | ``gsplat`` | ``reference``.
         tile_size: tile edge in pixels (16 as gsplat).
 
-    Gradients flow to means, quats, scales, opacities and colors. Under ``torch.no_grad()`` the
-    cpu backend skips the bookkeeping for the backward pass. Bad shapes, non-finite values and
+    Gradients flow to means, quats, scales, opacities and colors (SH coefficients); the cpu
+    backend does not differentiate with respect to the camera (viewmat, K). Under
+    ``torch.no_grad()`` the cpu backend skips the bookkeeping for the backward pass. The cpu
+    backend computes in float32 (float64 inputs are rounded) and needs ``tile_size`` to be a
+    multiple of 8. Bad shapes, non-finite values and
     impossible sizes raise :class:`RasterInputError`; N = 0 renders an empty (transparent) image.
 
     Example:
