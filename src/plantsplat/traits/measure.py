@@ -140,6 +140,8 @@ class TraitResult:
     transform: np.ndarray | None = None
     """[4, 4] cloud -> calibrated frame (similarity)."""
     timings: dict = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+    """Informational messages that do not lower the quality."""
 
     def to_json(self) -> dict:
         """The ``traits.json`` content (without the point arrays)."""
@@ -150,6 +152,7 @@ class TraitResult:
                 "quality": self.quality,
                 "quality_reasons": self.reasons,
                 "scale_source": self.scale.get("source"),
+                "notes": self.notes,
                 "robust": {k: self.robust.get(k) for k in ROBUST_KEYS} | {"trim": self.settings.get("trim")},
                 "method": (
                     "DBSCAN (Open3D) clustering; cube = cluster with a cube-like oriented bounding box, edge from "
@@ -297,6 +300,7 @@ def measure_traits(
             clusters={"filter": filt},
         )
     reasons: list[str] = []
+    notes: list[str] = []
     if n_nonfinite:
         reasons.append(f"{n_nonfinite} points with non-finite coordinates were dropped")
 
@@ -319,7 +323,7 @@ def measure_traits(
         lab2, cands2 = find_cube_cluster(pts, labels2, size if calibrated else None)
         if lab2 is not None:
             labels, eps, cube_label, cands = labels2, eps2, lab2, cands2
-            reasons.append(f"the cube touched another cluster; clustered again with half the radius ({eps2:.3g})")
+            notes.append(f"the cube touched another cluster; clustered again with half the radius ({eps2:.3g})")
     cube_fit = None
     if cube_label is not None:
         cube_fit = fit_cube_planes(pts[labels == cube_label], size_hint=size if calibrated else None, seed=s.seed)
@@ -391,9 +395,8 @@ def measure_traits(
             below.append(i)
     excl |= set(below)
     if below:
-        reasons_below = f"{len(below)} cluster(s) below the ground plane left out"
+        notes.append(f"{len(below)} cluster(s) below the ground plane left out")
         clusters_info["below_ground"] = below
-        log.info(reasons_below)
     sel = select_plant(pts_cm, labels, exclude=excl, merge_distance=s.merge_distance_cm,
                        min_cluster_fraction=s.min_cluster_fraction, min_cluster_points=s.min_points)
     if sel is None:
@@ -428,16 +431,15 @@ def measure_traits(
         traits["fruit_count"], fruit_centres = count_fruit(P_centres, cols[plant_mask & is_centre], s)
     else:
         traits["fruit_count"] = None
-        reasons.append("no colours in the cloud: fruit not counted")
+        notes.append("no colours in the cloud: fruit not counted")
     timings["plant_and_traits"] = time.perf_counter() - t2
     timings["total"] = time.perf_counter() - t0
-    serious = [r for r in reasons if not r.startswith("no colours")]
-    quality = "warning" if serious else "ok"
+    quality = "warning" if reasons else "ok"
     cube_pts = None if cube_label is None else pts_cm[labels == cube_label]
     return TraitResult(
         traits=traits, robust=robust, quality=quality, reasons=reasons, scale=scale, cube=cube_json,
         clusters=clusters_info, settings=asdict(s), plant_points=P, plant_colors=C, cube_points=cube_pts,
-        fruit_centres=fruit_centres, transform=T, timings=timings,
+        fruit_centres=fruit_centres, transform=T, timings=timings, notes=notes,
     )
 
 
@@ -599,4 +601,6 @@ def traits_workspace(ws, cfg=None, *, points_path: str | Path | None = None, cal
         traits_figure(res, ws.traits_png, title=ws.root.name)
     for r in res.reasons:
         log.warning("traits: %s", r)
+    for r in res.notes:
+        log.info("traits: %s", r)
     return out
