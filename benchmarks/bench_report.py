@@ -77,6 +77,7 @@ def main(argv=None) -> int:
     ap.add_argument("--opens", type=int, default=3)
     ap.add_argument("--orbit-frames", type=int, default=30)
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "report.json")
+    ap.add_argument("--screenshot", type=Path, default=None, help="save a full-page screenshot of the report here")
     args = ap.parse_args(argv)
     if find_chromium() is None or not playwright_available():
         print("needs chromium (apt-get install chromium) and playwright (pip install playwright)", file=sys.stderr)
@@ -98,7 +99,7 @@ def main(argv=None) -> int:
                 last = i == args.opens - 1
                 res = browser.open(report, timeout_s=120, orbit_frames=10 if last else 0,
                                    keep_page=last,
-                                   screenshot=args.out.parent / "report_bench.png" if last else None)
+                                   screenshot=args.screenshot if last else None)
                 if res.viewer_state != "ready":
                     raise SystemExit(f"viewer did not get ready: {res.viewer_state} {res.viewer_error}")
                 opens.append(res.first_content_s)
@@ -108,6 +109,8 @@ def main(argv=None) -> int:
             result["orbit_adapting"] = res.orbit
             page = res.page
             result["orbit_adaptive"] = page.evaluate(f"window.plantsplatViewer.orbit({args.orbit_frames})")
+            # and right after it, with no pause: sustained orbiting (no switch back to the full model)
+            result["orbit_adaptive_sustained"] = page.evaluate(f"window.plantsplatViewer.orbit({args.orbit_frames})")
             page.evaluate("window.plantsplatViewer.setAdaptive(false)")
             result["orbit_full_model_full_resolution"] = page.evaluate(
                 f"window.plantsplatViewer.orbit({max(4, args.orbit_frames // 5)})")
@@ -119,19 +122,20 @@ def main(argv=None) -> int:
         result["load_event_s_median"] = round(statistics.median(loads), 3)
         result["console_errors"] = errors
     result["loadavg_after"] = os.getloadavg()
-    fps = result["orbit_adaptive"]["medianFps"]  # median frame interval: robust to a slow transition frame
+    o, sus = result["orbit_adaptive"], result["orbit_adaptive_sustained"]
     result["targets"] = {
         "size_mb < 20": result["size_mb"] < 20,
         "open_s < 3": result["open_s_median"] < 3,
-        "orbit fps >= 20 (smooth), adaptive viewer": fps >= 20,
+        "orbit median fps >= 20 (adaptive viewer)": o["medianFps"] >= 20,
+        "orbit mean fps >= 20 (adaptive viewer, sustained)": sus["fps"] >= 20,
     }
     write_json_atomic(args.out, result)
-    o = result["orbit_adaptive"]
     print(f"report {result['size_mb']} MB built in {result['build_s']} s; open {result['open_s_median']} s "
-          f"(runs {result['open_s_runs']}); orbit {fps:.1f} fps adaptive, median (mean {o['fps']:.1f}; pixel ratio "
-          f"{o['pixelRatio']:.2f}, "
-          f"preview splats {o['preview']}), {result['orbit_full_model_full_resolution']['medianFps']:.2f} fps full model at "
-          f"full resolution; load {result['loadavg_before']} -> {result['loadavg_after']}")
+          f"(runs {result['open_s_runs']}); orbit (adaptive) median {o['medianFps']:.1f} fps, mean {o['fps']:.1f} fps, "
+          f"worst frame {o['maxMsPerFrame']:.0f} ms; sustained mean {sus['fps']:.1f} fps (pixel ratio "
+          f"{sus['pixelRatio']:.2f}, preview splats {sus['preview']}); full model at full resolution median "
+          f"{result['orbit_full_model_full_resolution']['medianFps']:.2f} fps; load {result['loadavg_before']} -> "
+          f"{result['loadavg_after']}")
     return 0
 
 

@@ -92,8 +92,16 @@ def _traits_section(ws: Workspace, parts: _Parts) -> str:
         if not isinstance(t, dict):
             raise PlantsplatError(f"{ws.traits_json}: expected a JSON object; re-run `plantsplat traits`")
         main = {TRAIT_LABELS[k]: t[k] for k in TRAIT_KEYS if k in t}
+        for key, label in (("quality", "Measurement quality"), ("scale_source", "Scale from")):
+            if t.get(key) is not None:
+                main[label] = t[key]
         body.append(H.kv_table(main, cls="kv traits"))
-        other = {k: v for k, v in t.items() if k not in TRAIT_KEYS}
+        reasons = t.get("quality_reasons")
+        if reasons:
+            items = "".join(f"<li>{H.esc(r)}</li>" for r in (reasons if isinstance(reasons, list) else [reasons]))
+            body.append(f'<div class="missing"><b>Check these measurements:</b><ul>{items}</ul></div>')
+        shown = {"quality", "scale_source", "quality_reasons"}
+        other = {k: v for k, v in t.items() if k not in TRAIT_KEYS and k not in shown}
         if other:
             body.append("<details><summary>measurement details</summary>" + H.generic_tables(other) + "</details>")
         parts.have("traits")

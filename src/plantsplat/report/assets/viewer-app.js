@@ -8,7 +8,8 @@
 // window.plantsplatViewer exposes state for tests and benchmarks: state ('loading' | 'ready' | 'error'),
 // error, firstContentMs (first frame with the model drawn, ms since navigation start), setMode(mode),
 // rendered() -> Promise (next frame presented), setAdaptive(bool) (dynamic resolution while moving),
-// orbit(frames) -> Promise<{fps, msPerFrame, medianFps, medianMsPerFrame, frames, pixelRatio, preview}>.
+// orbit(frames) -> Promise<{fps, msPerFrame, medianFps, medianMsPerFrame, maxMsPerFrame, frames, pixelRatio,
+// preview}>.
 (function () {
   "use strict";
 
@@ -204,6 +205,7 @@
         var median = sorted.length ? sorted[Math.floor(sorted.length / 2)] : ms;
         orbitJob = null;
         job.resolve({ frames: job.frames, msPerFrame: ms, fps: 1000 / ms, medianMsPerFrame: median, medianFps: 1000 / median,
+                     maxMsPerFrame: job.times.length ? Math.max.apply(null, job.times) : ms,
                      pixelRatio: ratio, fullPixelRatio: fullRatio,
                      preview: usePreview ? spark.lodSplatCount : null });
       }
