@@ -66,7 +66,7 @@ def test_output_contract(synth_capture):
         assert z[0] > 0 and 0 <= uv[0, 0] < 180 and 0 <= uv[0, 1] < 320
         assert set(f["cube_markers_visible"]) <= {0, 1, 2, 3, 4}  # the bottom face stands on the platform
     assert {f["ring"] for f in gt["frames"]} == {"low", "mid", "high"}
-    for p in ("video.mp4", "plant_gt.ply", "scene_gt.ply"):
+    for p in ("video.mp4", "plant_gt.ply", "scene_gt.ply", "preview.png"):
         assert (cap / p).stat().st_size > 0
     assert not list(cap.glob(".*tmp*")), "temporary files left behind"
 

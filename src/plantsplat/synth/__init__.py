@@ -8,8 +8,7 @@ Example:
     PosixPath('/tmp/cap/video.mp4')
 
 Outputs (``OUT/``): ``video.mp4`` (H.264, 24 fps), ``frames/frame_00000.png`` (the same frames,
-lossless), ``masks/frame_00000.png`` (255 = plant or cube), ``plant_gt.ply``, ``scene_gt.ply`` and
-``ground_truth.json``. See :mod:`plantsplat.synth.capture`.
+lossless), ``masks/frame_00000.png`` (255 = plant or cube), ``plant_gt.ply``, ``scene_gt.ply``, ``ground_truth.json`` and ``preview.png`` (six frames with their mask outlines). See :mod:`plantsplat.synth.capture`.
 """
 
 from __future__ import annotations

@@ -61,6 +61,22 @@ def _versions() -> dict:
     return out
 
 
+def _preview_tile(rgb: np.ndarray, mask: np.ndarray, markers: list[int], ring: str, width: int = 240) -> np.ndarray:
+    """A frame above the same frame with its mask outline, captioned with the ring and visible markers."""
+    import cv2
+
+    h = int(round(rgb.shape[0] * width / rgb.shape[1]))
+    small = cv2.resize(rgb, (width, h), interpolation=cv2.INTER_AREA)
+    m = cv2.resize(mask, (width, h), interpolation=cv2.INTER_NEAREST)
+    over = (small * 0.45).astype(np.uint8)
+    over[m > 0] = small[m > 0]
+    edge = cv2.morphologyEx(m, cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0
+    over[edge] = (255, 230, 0)
+    cv2.putText(over, f"{ring} ring, markers {markers}", (6, h - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1,
+                cv2.LINE_AA)
+    return np.concatenate([small, over], axis=0)
+
+
 def _remove_stale_frames(out: Path, n: int) -> None:
     """With --force over an earlier synth capture, drop its frames/masks beyond the new frame count.
 
@@ -154,6 +170,8 @@ def generate(cfg: SynthConfig) -> dict:
     t_render = t_dev = t_vis = 0.0
     video_path = out / "video.mp4"
     fg_frac = []
+    preview_idx = set(np.linspace(0, cfg.frames - 1, min(6, cfg.frames)).round().astype(int).tolist())
+    previews = []
     with ThreadPoolExecutor(max_workers=2) as pool, \
             VideoWriter(video_path, cfg.width, cfg.height, FPS, crf=cfg.crf) as vw:
         pending = []
@@ -179,6 +197,8 @@ def generate(cfg: SynthConfig) -> dict:
             t_dev += t2 - t1
             t_vis += t3 - t2
             fg_frac.append(float(mask.mean() / 255))
+            if i in preview_idx:
+                previews.append(_preview_tile(rgb, mask, visible, rings[i]))
             frames_json.append(dict(index=i, file=f"frames/{name}", mask=f"masks/{name}", time_s=i / FPS, ring=rings[i],
                                     c2w=c2ws[i], cube_markers_visible=visible,
                                     motion_blur_px=float(sensor.blur_px[i]),
@@ -191,6 +211,7 @@ def generate(cfg: SynthConfig) -> dict:
         for f in pending:
             f.result()
         video_settings = vw.settings
+    write_image_atomic(out / "preview.png", np.concatenate(previews, axis=1))
     gl_renderer = renderer.ctx.info["GL_RENDERER"]
     renderer.release()
     timings.update(render_s=t_render, develop_s=t_dev, visibility_s=t_vis)
@@ -227,6 +248,6 @@ def generate(cfg: SynthConfig) -> dict:
     log.info("wrote %s in %.1f s (render %.1f s)", out, timings["total_s"], t_render)
     return dict(out=out, paths=dict(video=video_path, frames=out / "frames", masks=out / "masks",
                                     plant_gt=out / "plant_gt.ply", scene_gt=out / "scene_gt.ply",
-                                    ground_truth=out / "ground_truth.json"),
+                                    ground_truth=out / "ground_truth.json", preview=out / "preview.png"),
                 timings=timings, traits=traits, frames=cfg.frames)
 
