@@ -163,7 +163,7 @@ class Renderer:
         except Exception as exc:  # no EGL / Mesa
             raise PlantsplatError(
                 f"headless OpenGL (EGL) is not available ({exc}); install Mesa EGL "
-                "(Debian: libegl1 libgl1-mesa-dri) and check with `plantsplat doctor`") from exc
+                "(Debian: libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1) and check with `plantsplat doctor`") from exc
         ctx = self.ctx
         self.intr = intr
         W, H = intr["width"], intr["height"]
