@@ -170,3 +170,16 @@ def test_runner_keeps_finished_stages_when_one_fails(tmp_path):
     run = read_json(ws.run_json)
     assert run["failed_stage"] == "b" and "a" in run["stages"]
     assert (ws.root / "a.out").exists()
+
+
+def test_every_command_has_working_help(capsys):
+    from plantsplat.cli import discover_commands
+
+    names = [c.name for c in discover_commands()]
+    for expected in ["synth", "frames", "segment", "poses", "train", "export", "traits", "evaluate", "run", "demo",
+                     "batch", "report", "doctor"]:
+        assert expected in names
+    for name in names:
+        assert main([name, "--help"]) == 0, name
+        out = capsys.readouterr().out
+        assert f"plantsplat {name}" in out

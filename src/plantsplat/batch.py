@@ -185,13 +185,17 @@ def _run_ray(jobs: list[tuple], address: str, run_opts: RunOptions, workers: int
     refs = [remote.remote(*job, per_task) for job in jobs]
     results = []
     pending = list(refs)
-    for _ in progress(range(len(refs)), "plants (ray)"):
-        done, pending = ray.wait(pending, num_returns=1)
-        try:
-            results.append(ray.get(done[0]))
-        except Exception as exc:  # a crashed worker: name the plant
-            idx = refs.index(done[0])
-            results.append({"plant_id": jobs[idx][0], "status": "failed", "error": f"Ray task failed: {exc}"})
+    try:
+        for _ in progress(range(len(refs)), "plants (ray)"):
+            done, pending = ray.wait(pending, num_returns=1)
+            try:
+                results.append(ray.get(done[0]))
+            except Exception as exc:  # a crashed worker: name the plant
+                idx = refs.index(done[0])
+                results.append({"plant_id": jobs[idx][0], "status": "failed", "error": f"Ray task failed: {exc}"})
+    finally:
+        if address == "local":
+            ray.shutdown()  # the cluster was started for this batch
     return results
 
 
@@ -237,7 +241,12 @@ def run_batch(manifest: str | Path, out: str | Path, opts: BatchOptions) -> dict
     if opts.ground_truth is not None:
         summary["accuracy"] = _accuracy(out, plants, opts.ground_truth)
     write_json_atomic(out / "batch.json", summary)
-    _maybe_batch_report(out, plants, summary.get("accuracy"))
+    truth = None
+    if opts.ground_truth is not None:
+        from plantsplat.groundtruth import read_ground_truth_csv
+
+        truth, _ = read_ground_truth_csv(opts.ground_truth)
+    _maybe_batch_report(out, plants, summary.get("accuracy"), truth)
     return summary
 
 
@@ -289,7 +298,7 @@ def _accuracy(out: Path, plants: list[dict], gt_path: Path) -> dict:
     return {"table": table, "ground_truth_problems": problems, "plants_without_ground_truth": missing}
 
 
-def _maybe_batch_report(out: Path, plants: list[dict], accuracy: dict | None) -> None:
+def _maybe_batch_report(out: Path, plants: list[dict], accuracy: dict | None, truth: dict | None) -> None:
     try:
         from plantsplat.report import write_batch_report
     except ImportError:
@@ -298,4 +307,4 @@ def _maybe_batch_report(out: Path, plants: list[dict], accuracy: dict | None) ->
                if p.get("workspace") and (Path(p["workspace"]) / "report.html").exists()}
     rows = [{"plant_id": p["plant_id"], "status": p["status"], "error": p.get("error"), **(p.get("traits") or {})}
             for p in plants]
-    write_batch_report(out, rows, accuracy, reports)
+    write_batch_report(out, rows, accuracy, reports, truth=truth)

@@ -22,7 +22,7 @@ class DemoConfig:
 
     out: Path = Path("plantsplat-demo")
     """Folder for the capture (OUT/capture) and the workspace (OUT/workspace)."""
-    seed: int = DEMO_SEED
+    capture_seed: int = DEMO_SEED
     """Seed of the synthetic plant and scene (the built-in sample is the default)."""
     frames: int = 120
     """Video frames to render."""
@@ -43,7 +43,7 @@ def run(cfg: DemoConfig) -> int:
     log = get_logger("demo")
     capture = cfg.out / "capture"
     gt_path = capture / "ground_truth.json"
-    wanted = {"seed": cfg.seed, "frames": cfg.frames, "width": cfg.width, "height": cfg.height}
+    wanted = {"seed": cfg.capture_seed, "frames": cfg.frames, "width": cfg.width, "height": cfg.height}
     reuse = False
     if gt_path.is_file() and (capture / "video.mp4").is_file():
         gt = read_json(gt_path)
@@ -59,8 +59,8 @@ def run(cfg: DemoConfig) -> int:
             raise PlantsplatError(
                 f"{capture}: holds a different capture; choose another --out or delete that folder", exit_code=2
             )
-        log.info("rendering the sample capture (seed %d, %d frames, %dx%d)", cfg.seed, cfg.frames, cfg.width, cfg.height)
-        generate(SynthConfig(seed=cfg.seed, out=capture, frames=cfg.frames, width=cfg.width, height=cfg.height))
+        log.info("rendering the sample capture (seed %d, %d frames, %dx%d)", cfg.capture_seed, cfg.frames, cfg.width, cfg.height)
+        generate(SynthConfig(seed=cfg.capture_seed, out=capture, frames=cfg.frames, width=cfg.width, height=cfg.height))
     opts = cfg.options
     opts.ground_truth = gt_path
     summary = run_pipeline(capture / "video.mp4", cfg.out / "workspace", opts)
