@@ -80,6 +80,8 @@ class TrainConfig:
             crop=self.crop if self.crop is not None else (not paper),
             max_gaussians=self.max_gaussians if self.max_gaussians is not None else (0 if paper else 200_000),
             seed=self.seed,
+            # the compressed CPU schedule culls early: start opaque enough not to lose everything at once
+            init_opacity=0.1 if paper else 0.5,
         )
         if r.iterations < 1:
             raise PlantsplatError(f"--iterations {r.iterations}: must be at least 1", exit_code=2)
@@ -125,7 +127,7 @@ class ResolvedConfig:
         return {
             "sh_interval": max(1, int(0.1 * n)),
             "res_interval": max(1, int(0.15 * n)),
-            "refine_start": max(1, int(0.05 * n)),
+            "refine_start": max(1, int(0.1 * n)),
             "refine_stop": int(0.7 * n),
             "refine_every": max(10, int(n / 40)),
             "reset_every": 0 if n < 1500 else int(0.35 * n),

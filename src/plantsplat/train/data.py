@@ -329,7 +329,8 @@ def visual_hull_points(views: list[View], center: np.ndarray, radius: float, n: 
             R, t = v.viewmat[:3, :3], v.viewmat[:3, 3]
             world = (cam - t) @ R  # [P, 3]
             seen, inside = mask_votes(world, dil)
-            keep = (seen >= 2) & (inside == seen)
+            # seen by most views (cameras circle the object) and inside every mask that sees it
+            keep = (seen >= max(2, int(0.6 * len(dil)))) & (inside == seen)
             found.append(world[keep])
             total += int(keep.sum())
         if total >= n:
@@ -364,8 +365,29 @@ def initial_points(scene: Scene, views: list[View], object_mode: bool, n_random:
                 "the masks and camera poses do not agree on any 3D region (empty visual hull); check the masks "
                 "(`masks_preview.png`) and the poses (`poses.json`)"
             )
-        return hull, np.full((len(hull), 3), 0.5), "random (mask visual hull)"
+        return hull, mean_colors(hull, views), "random (mask visual hull)"
     d = rng.normal(size=(n_random, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     r = radius * 1.5 * rng.uniform(0, 1, size=(n_random, 1)) ** (1 / 3)
-    return center + d * r, rng.uniform(0, 1, size=(n_random, 3)), "random (sphere around the cameras' target)"
+    pts = center + d * r
+    return pts, mean_colors(pts, views), "random (sphere around the cameras' target)"
+
+
+def mean_colors(points: np.ndarray, views: list[View]) -> np.ndarray:
+    """Mean image colour ``[P, 3]`` in [0, 1] of each point over the views it projects into (no
+    occlusion test: a starting value that saves the optimiser many steps); grey where unseen."""
+    acc = np.zeros((len(points), 3))
+    cnt = np.zeros(len(points))
+    for v in views:
+        if v.image is None:
+            continue
+        uv, z = project(points, v)
+        u = np.floor(uv[:, 0]).astype(np.int64)
+        w = np.floor(uv[:, 1]).astype(np.int64)
+        ok = (z > 0) & (u >= 0) & (w >= 0) & (u < v.width) & (w < v.height)
+        acc[ok] += v.image[w[ok], u[ok]] / 255.0
+        cnt[ok] += 1
+    out = np.full((len(points), 3), 0.5)
+    seen = cnt > 0
+    out[seen] = acc[seen] / cnt[seen, None]
+    return out

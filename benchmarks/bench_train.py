@@ -1,0 +1,138 @@
+"""Benchmark: object-centric vs full-frame vs PBR 3DGS on synthetic captures and the ROMI virtual plant.
+
+Reproduces the paper's comparison (Tables 2-3): for each capture, train `object` and `full` models
+with the same split; PBR is the full model evaluated with the masks applied after training. Records
+PSNR / SSIM / LPIPS (full frame and foreground only), training wall and CPU time, render FPS,
+Gaussians and peak memory, plus machine info (timings on a shared machine are noisy).
+
+    .venv/bin/python benchmarks/bench_train.py                       # the issue's setting (slow)
+    .venv/bin/python benchmarks/bench_train.py --frames 36 --width 180 --height 320 --iterations 300
+
+Writes benchmarks/results/train.json (atomically).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "src"))
+os.environ.setdefault("PLANTSPLAT_NO_PROGRESS", "1")
+
+from plantsplat.io import read_json, write_json_atomic  # noqa: E402
+from plantsplat.log import setup_logging  # noqa: E402
+from plantsplat.resources import machine_info  # noqa: E402
+from plantsplat.workspace import Workspace  # noqa: E402
+
+
+def synth_workspace(cap: Path, dst: Path) -> Workspace:
+    """Workspace from a synth capture with ground-truth poses (OpenCV pixel centres -> +0.5 for 3DGS)."""
+    gt = read_json(cap / "ground_truth.json")
+    ws = Workspace(dst)
+    ws.images_dir.mkdir(parents=True)
+    ws.masks_dir.mkdir(parents=True)
+    intr = gt["intrinsics"]
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])
+    frames = []
+    for fr in gt["frames"]:
+        name = Path(fr["file"]).name
+        shutil.copy(cap / fr["file"], ws.images_dir / name)
+        shutil.copy(cap / fr["mask"], ws.masks_dir / name)
+        frames.append({"file_path": f"images/{name}", "transform_matrix": (np.asarray(fr["c2w"]) @ flip).tolist()})
+    write_json_atomic(ws.transforms_json, {"fl_x": intr["fx"], "fl_y": intr["fy"], "cx": intr["cx"] + 0.5,
+                                           "cy": intr["cy"] + 0.5, "w": intr["width"], "h": intr["height"],
+                                           "frames": frames})
+    return ws
+
+
+def run_modes(ws: Workspace, iterations: int | None, max_res: int | None, modes=("object", "full")) -> dict:
+    from plantsplat.train.trainer import TrainConfig, train_workspace
+
+    res = {}
+    for mode in modes:
+        t0 = time.perf_counter()
+        cfg = TrainConfig(mode=mode, iterations=iterations, max_resolution=max_res, train_dir=ws.root / f"train_{mode}",
+                          metrics_path=ws.root / f"metrics_{mode}.json")
+        s = train_workspace(ws, cfg)
+        m = s["metrics"]
+        res[mode] = {k: m[k] for k in ("composite", "foreground", "n_gaussians", "render_fps", "train_seconds",
+                                        "train_cpu_seconds", "resolution", "iterations", "n_test_views")}
+        res[mode]["peak_rss_mb_process"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        res[mode]["wall_seconds_incl_eval"] = time.perf_counter() - t0
+        if mode == "full":
+            res["pbr"] = m["pbr"]
+        print(mode, {k: res[mode][k] for k in ("composite", "foreground", "n_gaussians", "train_seconds")}, flush=True)
+    return res
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--frames", type=int, default=120)
+    ap.add_argument("--width", type=int, default=540)
+    ap.add_argument("--height", type=int, default=960)
+    ap.add_argument("--iterations", type=int, default=None, help="default: the CPU recipe's")
+    ap.add_argument("--max-resolution", type=int, default=None)
+    ap.add_argument("--romi-size", type=int, default=448)
+    ap.add_argument("--skip-romi", action="store_true")
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "train.json")
+    args = ap.parse_args()
+    setup_logging()
+    from plantsplat.synth import SynthConfig, generate
+
+    doc = {"machine_start": machine_info(), "args": {k: str(v) for k, v in vars(args).items()}, "synth": {},
+           "romi": None}
+    tmp = Path(tempfile.mkdtemp(prefix="bench_train_"))
+    try:
+        for seed in args.seeds:
+            cap = tmp / f"cap{seed}"
+            generate(SynthConfig(out=cap, seed=seed, frames=args.frames, width=args.width, height=args.height,
+                                 force=True))
+            ws = synth_workspace(cap, tmp / f"ws{seed}")
+            doc["synth"][str(seed)] = run_modes(ws, args.iterations, args.max_resolution)
+            doc["machine_end"] = machine_info()
+            write_json_atomic(args.out, doc)
+        ds = Path(os.environ.get("PLANTSPLAT_DATASETS", REPO.parent / "shared" / "datasets"))
+        romi = ds / "romi_virtual_plant_synthetic"
+        if not args.skip_romi and romi.is_dir():
+            from plantsplat.train.romi import workspace_from_romi
+
+            ws = workspace_from_romi(romi, tmp / "romi", size=args.romi_size)
+            doc["romi"] = run_modes(ws, args.iterations, args.max_resolution)
+        elif not args.skip_romi:
+            doc["romi"] = f"skipped: {romi} not found"
+        # means over seeds
+        summ = {}
+        for key in ("object", "full", "pbr"):
+            rows = [r[key] for r in doc["synth"].values()]
+            if key == "pbr":
+                summ[key] = {f"{k}": float(np.mean([r[k] for r in rows if r[k] is not None] or [np.nan]))
+                             for k in ("psnr", "ssim", "lpips")}
+                continue
+            summ[key] = {
+                "composite": {k: float(np.mean([r["composite"][k] for r in rows if r["composite"][k] is not None]
+                                               or [np.nan])) for k in ("psnr", "ssim", "lpips")},
+                "foreground": {k: float(np.mean([r["foreground"][k] for r in rows if r["foreground"][k] is not None]
+                                                or [np.nan])) for k in ("psnr", "ssim", "lpips")},
+                **{k: float(np.mean([r[k] for r in rows])) for k in ("train_seconds", "train_cpu_seconds",
+                                                                      "n_gaussians", "render_fps")},
+            }
+        doc["synth_mean"] = summ
+        doc["machine_end"] = machine_info()
+        write_json_atomic(args.out, doc)
+        print("wrote", args.out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
