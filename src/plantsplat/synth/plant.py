@@ -167,16 +167,20 @@ def _leaf(rng, idx, crown, crown_r, azim, L, elev, leaflet_len, pot: Pot, tint, 
     n_teeth = int(rng.integers(9, 15))
     depth = rng.uniform(0.05, 0.11)
     leaf_col = np.array([0.16, 0.36, 0.09]) * tint
-    blades = []
+    blades, stalks = [], []
     for k, th in enumerate((0.0, spread, -spread)):
         R = rot_axis(n, th)
         d, sd = R @ f, R @ s
         ln = leaflet_len * (1.0 if k == 0 else rng.uniform(0.82, 0.95))
         hw = ln * rng.uniform(0.34, 0.42)
-        blades.append(_leaflet(rng, tip + d * 0.35, d, sd, n, ln, hw, cup, fold, droop, n_teeth, depth, leaf_col,
+        stalk = rng.uniform(0.5, 1.0) if k == 0 else 0.3  # petiolules: the terminal one is longer
+        start = tip + d * stalk
+        blades.append(_leaflet(rng, start, d, sd, n, ln, hw, cup, fold, droop, n_teeth, depth, leaf_col,
                                idx, senescence))
+        stalks.append(tube_mesh(np.linspace(tip, start + d * 0.1, 3), 0.07, 5, pet_col, uv_scale=0.05,
+                                layer=T.WHITE, cls=PETIOLE, instance=idx))
     blade = merge(blades)
-    return [petiole, blade], curve, blade.v, dict(azimuth_deg=float(np.degrees(azim) % 360), petiole_length_cm=float(L),
+    return [petiole, merge(stalks), blade], curve, blade.v, dict(azimuth_deg=float(np.degrees(azim) % 360), petiole_length_cm=float(L),
                                                   elevation_deg=float(np.degrees(elev)),
                                                   leaflet_length_cm=float(leaflet_len))
 
@@ -266,7 +270,7 @@ def _hits_pot(pts: np.ndarray, pot: Pot, margin: float = 0.15) -> bool:
 def _draw_plant(rng: np.random.Generator, pot: Pot, avoid_azimuth: float | None, obstacle=None):
     soil = pot.soil_z
     crown = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), soil])
-    crown_r = rng.uniform(1.3, 2.4)
+    crown_r = rng.uniform(1.0, 1.8)
     scale = rng.uniform(0.4, 1.6)
     n_leaves = int(rng.integers(5, 16))
     aniso = rng.uniform(0.12, 0.4)
@@ -297,8 +301,8 @@ def _draw_plant(rng: np.random.Generator, pot: Pot, avoid_azimuth: float | None,
         leaves.append(info)
     # crown dome
     hh = np.linspace(0, 1, 8)
-    meshes.append(revolution_mesh(hh * crown_r * 1.2, crown_r * np.sqrt(1 - hh**2 * 0.98), crown, Z, 14,
-                                  (0.35, 0.3, 0.12), layer=T.WHITE, cls=CROWN, instance=0))
+    meshes.append(revolution_mesh(hh * crown_r * 0.8, crown_r * np.sqrt(1 - hh**2 * 0.98), crown, Z, 14,
+                                  (0.3, 0.24, 0.12), layer=T.WHITE, cls=CROWN, instance=0))
     # fruits
     n_fruits = int(rng.integers(1, 11))
     fruits = []
