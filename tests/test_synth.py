@@ -339,6 +339,13 @@ def test_refuses_non_empty_out_unless_force(tmp_path, capsys):
     assert main(args + ["--force"]) == 0
     assert keep.read_text() == "mine" and (out / "ground_truth.json").is_file()
     assert len(list((out / "frames").iterdir())) == 3
+    # re-running a shorter capture over it leaves no stale frames of the longer one
+    args[args.index("--frames") + 1] = "4"
+    assert main(args + ["--force"]) == 0 and len(list((out / "masks").iterdir())) == 4
+    args[args.index("--frames") + 1] = "3"
+    assert main(args + ["--force"]) == 0
+    assert sorted(p.name for p in (out / "frames").iterdir()) == [f"frame_{i:05d}.png" for i in range(3)]
+    assert keep.read_text() == "mine"
 
 
 @pytest.mark.parametrize("extra, word", [
