@@ -169,7 +169,35 @@ def evaluate_cube_candidate(
     if pe.min() < pe.max() / 2.5 or (cube_size is not None and not 0.5 * cube_size < pe.max() < 2.2 * cube_size):
         return CubeCandidate(label, n, sorted(pe.tolist(), reverse=True), float(pe.min() / pe.max()), 0.0, 0, 0.0,
                              False, "PCA extents are not a cube's")
-    R, lo, hi, proj = _robust_obb(points)
+    # box orientations to try: the minimal OBB of all points, of the core (without the 5 % farthest
+    # points, e.g. attached floaters), and the cube frame from fitted face planes (noise-robust)
+    best = None
+    core = points[np.linalg.norm(points - np.median(points, 0), axis=1) <= np.quantile(
+        np.linalg.norm(points - np.median(points, 0), axis=1), 0.95)]
+    for k in range(3):
+        if k == 0:
+            R = _robust_obb(points)[0]
+        elif k == 1:
+            R = _robust_obb(core)[0]
+        else:
+            sub = points[:: max(1, n // 4000)]  # the orientation only: a subset is enough
+            fit = fit_cube_planes(sub, size_hint=cube_size, max_planes=6)
+            if fit is None:
+                break
+            R = fit.axes
+        cand = _box_candidate(points, R, label, cube_size)
+        if best is None or (cand.accepted, cand.score) > (best.accepted, best.score):
+            best = cand
+        if best.accepted and best.score > 0.5:
+            break
+    return best
+
+
+def _box_candidate(points: np.ndarray, R: np.ndarray, label: int, cube_size: float | None) -> CubeCandidate:
+    """Cube-likeness of ``points`` in the box frame with axes ``R [3, 3]`` (rows)."""
+    n = len(points)
+    proj = (points - points.mean(0)) @ R.T  # [N, 3]
+    lo, hi = np.quantile(proj, [0.01, 0.99], axis=0)
     ext = hi - lo
     order = np.argsort(-ext)
     ext_sorted = ext[order]
