@@ -126,7 +126,8 @@ def generate(cfg: SynthConfig) -> dict:
     t = time.perf_counter()
     log.info("synth seed %d: building the plant, pot, cube and room", cfg.seed)
     scene = make_scene(np.random.default_rng(s_scene), cube)
-    layers = make_layers(np.random.default_rng(s_tex), cube=cube)
+    tex_size = 512 if max(cfg.width, cfg.height) > 480 else 256  # small frames: smaller textures, same look
+    layers = make_layers(np.random.default_rng(s_tex), size=tex_size, cube=cube)
     timings["scene_s"] = time.perf_counter() - t
 
     # ground truth
