@@ -62,7 +62,7 @@ class ClassicSettings:
     weak_band: float = 0.006
     """Weak plant colours are accepted only this far (fraction of the longer image side) from strong ones."""
     pale_max_area: float = 0.004
-    """Largest pale (white/yellow) blob accepted as flower, as a fraction of the image area."""
+    """Largest weak/pale blob touching the plant accepted whole (unripe fruit, flower), as a fraction of the image."""
     min_blob: float = 2e-5
     """Plant pieces smaller than this fraction of the image are dropped as specks."""
     fill_holes: float = 1.5e-4
@@ -71,6 +71,8 @@ class ClassicSettings:
     """Longer side (px) of the gray frames used to locate frames without visible markers (SIFT + PnP); 0 = off."""
     cube_from_features: bool = True
     """Draw the cube also in frames located by features (not by their own markers)."""
+    roi_max_gap: int = 4
+    """Frames without any pose borrow one interpolated over at most this many frames (plant region only)."""
     min_poses: int = 6
     """Fewer frames with a cube pose than this: fall back to the 2D plant locator."""
 
@@ -85,6 +87,7 @@ class CaptureContext:
     dist: np.ndarray | None = None
     poses: list[np.ndarray | None] = field(default_factory=list)
     pose_source: list[str] = field(default_factory=list)
+    roi_poses: list[np.ndarray | None] = field(default_factory=list)  # poses, gaps bridged loosely
     hull_points: np.ndarray | None = None  # [M, 3] plant voxel centres (cube frame, cm)
     voxel: float = 0.0
     centre: np.ndarray | None = None
@@ -169,6 +172,7 @@ class ClassicSegmenter:
             ctx.info["frames_with_feature_pose"] = int(sum(found))
         n_pose = sum(p is not None for p in ctx.poses)
         ctx.info["frames_with_cube_pose"] = n_pose
+        ctx.roi_poses = geo.interpolate_gaps(ctx.poses, s.roi_max_gap, 90.0)
         ctx.info["frames_with_interpolated_pose"] = sum(h == "interpolated" for h in ctx.pose_source)
         good = [r for r in rms if r is not None]
         ctx.info["cube_pose_rms_px_median"] = round(float(np.median(good)), 4) if good else None
@@ -214,9 +218,10 @@ class ClassicSegmenter:
     def _roi_3d(self, i: int, ctx: CaptureContext) -> np.ndarray | None:
         import cv2
 
-        if ctx.hull_points is None or not ctx.poses or ctx.poses[i] is None:
+        if ctx.hull_points is None or not ctx.roi_poses or ctx.roi_poses[i] is None:
             return None
-        T = ctx.poses[i]
+        T = ctx.roi_poses[i]
+        loose = ctx.poses[i] is None  # borrowed pose: a wider margin
         s = self.s
         h, w = self._smalls[i].shape
         uv, z = geo.project(ctx.hull_points, T, self._Ks)
@@ -227,7 +232,7 @@ class ClassicSegmenter:
         roi = np.zeros((h, w), np.uint8)
         roi[v[inside], u[inside]] = 1
         depth = float(np.median(z[ok])) if ok.any() else 1.0
-        r = (0.87 * ctx.voxel + s.roi_margin_cm) * self._Ks[0, 0] / max(depth, 1e-3)
+        r = (0.87 * ctx.voxel + s.roi_margin_cm * (3.0 if loose else 1.0)) * self._Ks[0, 0] / max(depth, 1e-3)
         return cv2.dilate(roi, _disk(np.ceil(r))).astype(bool)
 
     def _roi_2d(self, i: int) -> np.ndarray:
@@ -264,7 +269,7 @@ class ClassicSegmenter:
         H, W = rgb.shape[:2]
         strong, weak, pale = plant_colour_masks(rgb, s.colour)
         roi_small = self._roi_3d(i, ctx)
-        locator = "3d"
+        locator = "3d" if ctx.poses and ctx.poses[i] is not None else "3d-interpolated"
         if roi_small is None:
             roi_small = self._roi_2d(i)
             locator = "2d"
@@ -280,9 +285,11 @@ class ClassicSegmenter:
             has_seed[np.unique(lab[seeds])] = True
             has_seed[0] = False
             plant = has_seed[lab]
-        # pale blobs (flowers) touching the plant, small ones only
-        if pale.any() and plant.any():
-            n2, lab2, st2, _ = cv2.connectedComponentsWithStats((pale & roi).astype(np.uint8), connectivity=8)
+        # fruit- and flower-sized blobs of weak or pale colour touching the plant (unripe fruit, petals):
+        # accepted whole, unlike large weak regions which only count within the band around strong seeds
+        if plant.any():
+            blob = ((weak | pale) & roi & ~plant).astype(np.uint8)
+            n2, lab2, st2, _ = cv2.connectedComponentsWithStats(blob, connectivity=8)
             if n2 > 1:
                 touch = cv2.dilate(plant.astype(np.uint8), _disk(2)).astype(bool)
                 ok = np.zeros(n2, bool)

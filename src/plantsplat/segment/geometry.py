@@ -123,8 +123,6 @@ def cube_poses(
     between them. Returns ``(poses, rms, how)`` with ``how`` in
     ``{"markers", "interpolated", "none"}``.
     """
-    from scipy.spatial.transform import Rotation, Slerp
-
     n = len(detections)
     poses: list[np.ndarray | None] = [None] * n
     rms: list[float | None] = [None] * n
@@ -133,21 +131,39 @@ def cube_poses(
         r = cube_pose(d, K, dist, cube) if d else None
         if r is not None and r[1] <= max_rms:
             poses[i], rms[i], how[i] = r[0], r[1], "markers"
-    have = [i for i in range(n) if poses[i] is not None]
-    for a, b in zip(have[:-1], have[1:]):
-        if 1 < b - a <= max_gap + 1:
-            ca, cb = np.linalg.inv(poses[a]), np.linalg.inv(poses[b])  # camera-to-cube
-            turn = np.degrees(Rotation.from_matrix(ca[:3, :3].T @ cb[:3, :3]).magnitude())
-            if turn > max_step_deg:
-                continue
-            slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([ca[:3, :3], cb[:3, :3]])))
-            for j in range(a + 1, b):
-                t = (j - a) / (b - a)
-                c2w = np.eye(4)
-                c2w[:3, :3] = slerp([t]).as_matrix()[0]
-                c2w[:3, 3] = (1 - t) * ca[:3, 3] + t * cb[:3, 3]
-                poses[j], how[j] = np.linalg.inv(c2w), "interpolated"
+    filled = interpolate_gaps(poses, max_gap, max_step_deg)
+    for j in range(n):
+        if poses[j] is None and filled[j] is not None:
+            poses[j], how[j] = filled[j], "interpolated"
     return poses, rms, how
+
+
+def interpolate_gaps(
+    poses: list[np.ndarray | None], max_gap: int = 3, max_step_deg: float = 20.0
+) -> list[np.ndarray | None]:
+    """Fill runs of at most ``max_gap`` missing poses between two known ones (slerp + linear centre).
+
+    A run is filled only when the camera turned less than ``max_step_deg`` between the two ends.
+    """
+    from scipy.spatial.transform import Rotation, Slerp
+
+    out = list(poses)
+    have = [i for i in range(len(poses)) if poses[i] is not None]
+    for a, b in zip(have[:-1], have[1:]):
+        if not 1 < b - a <= max_gap + 1:
+            continue
+        ca, cb = np.linalg.inv(poses[a]), np.linalg.inv(poses[b])  # camera-to-cube
+        turn = np.degrees(Rotation.from_matrix(ca[:3, :3].T @ cb[:3, :3]).magnitude())
+        if turn > max_step_deg:
+            continue
+        slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([ca[:3, :3], cb[:3, :3]])))
+        for j in range(a + 1, b):
+            t = (j - a) / (b - a)
+            c2w = np.eye(4)
+            c2w[:3, :3] = slerp([t]).as_matrix()[0]
+            c2w[:3, 3] = (1 - t) * ca[:3, 3] + t * cb[:3, 3]
+            out[j] = np.linalg.inv(c2w)
+    return out
 
 
 def project(points: np.ndarray, T_cam_world: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
