@@ -111,6 +111,9 @@ def detect_markers(image: np.ndarray, cube: CubeSpec = CubeSpec()) -> dict[int, 
     gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    # a small window: the cube edge is only 2 mm outside each marker, and the default (5 px) pulls
+    # corners inward at oblique views (median corner error 1.36 -> 0.92 px on synthetic captures)
+    params.cornerRefinementWinSize = 3
     detector = cv2.aruco.ArucoDetector(cube.aruco_dictionary(), params)
     corners, ids, _ = detector.detectMarkers(gray)
     out: dict[int, np.ndarray] = {}
