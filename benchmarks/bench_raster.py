@@ -201,17 +201,22 @@ def sample_plant_points(n: int, out: Path) -> None:
 
 
 def _ssim(x, y):
-    """SSIM (11x11 Gaussian window, sigma 1.5) of [1, 3, H, W] images in [0, 1]."""
+    """SSIM (11x11 Gaussian window, sigma 1.5) of [1, 3, H, W] images in [0, 1].
+
+    The Gaussian window is separable, so it is applied as an 11x1 and a 1x11 depthwise convolution
+    (identical result, 5.5x fewer operations), to the five maps at once.
+    """
     import torch
     import torch.nn.functional as F
 
     g = torch.exp(-((torch.arange(11, dtype=x.dtype) - 5) ** 2) / (2 * 1.5**2))
     g = g / g.sum()
-    w = (g[:, None] * g[None, :]).expand(3, 1, 11, 11).contiguous()
-    mu_x, mu_y = F.conv2d(x, w, padding=5, groups=3), F.conv2d(y, w, padding=5, groups=3)
-    sxx = F.conv2d(x * x, w, padding=5, groups=3) - mu_x**2
-    syy = F.conv2d(y * y, w, padding=5, groups=3) - mu_y**2
-    sxy = F.conv2d(x * y, w, padding=5, groups=3) - mu_x * mu_y
+    maps = torch.cat([x, y, x * x, y * y, x * y], dim=1)  # [1, 15, H, W]
+    c = maps.shape[1]
+    blur = F.conv2d(maps, g.view(1, 1, 11, 1).expand(c, 1, 11, 1), padding=(5, 0), groups=c)
+    blur = F.conv2d(blur, g.view(1, 1, 1, 11).expand(c, 1, 1, 11), padding=(0, 5), groups=c)
+    mu_x, mu_y, xx, yy, xy = blur.split(3, dim=1)
+    sxx, syy, sxy = xx - mu_x**2, yy - mu_y**2, xy - mu_x * mu_y
     c1, c2 = 0.01**2, 0.03**2
     return (((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))).mean()
 

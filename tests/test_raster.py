@@ -279,3 +279,25 @@ def test_gsplat_backend_matches_cpu():  # pragma: no cover - needs a GPU
     for a, b in zip(gp, gcpu):
         assert _rel(a.grad.cpu(), b) < 1e-3
     assert _rel(out.means2d.grad.cpu(), m2cpu) < 1e-3
+
+
+def test_spherical_harmonics_match_gsplat_published_formula():
+    """Degree-3 SH against the constants of gsplat's CUDA ``sh_coeffs_to_color_fast`` (Sloan 2013)."""
+    from plantsplat.raster.projection import spherical_harmonics
+
+    g = torch.Generator().manual_seed(3)
+    d, c = torch.randn(50, 3, generator=g), torch.randn(50, 16, 3, generator=g)
+    x, y, z = (d / d.norm(dim=1, keepdim=True)).unbind(-1)
+    fc1, fs1, z2 = x * x - y * y, 2 * x * y, z * z
+    t0b, t0c, t1b = -1.092548430592079 * z, -2.285228997322329 * z2 + 0.4570457994644658, 1.445305721320277 * z
+    fc2, fs2 = x * fc1 - y * fs1, x * fs1 + y * fc1
+    basis = [
+        torch.full_like(x, 0.2820947917738781), -0.48860251190292 * y, 0.48860251190292 * z, -0.48860251190292 * x,
+        0.5462742152960395 * fs1, t0b * y, 0.9461746957575601 * z2 - 0.3153915652525201, t0b * x,
+        0.5462742152960395 * fc1, -0.5900435899266435 * fs2, t1b * fs1, t0c * y,
+        z * (1.865881662950577 * z2 - 1.119528997770346), t0c * x, t1b * fc1, -0.5900435899266435 * fc2,
+    ]
+    expected = sum(b[:, None] * c[:, k] for k, b in enumerate(basis))
+    torch.testing.assert_close(spherical_harmonics(3, d, c), expected, atol=2e-6, rtol=0)
+    torch.testing.assert_close(spherical_harmonics(1, d, c[:, :4]), sum(b[:, None] * c[:, k] for k, b in enumerate(basis[:4])),
+                               atol=2e-6, rtol=0)

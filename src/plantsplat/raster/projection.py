@@ -159,33 +159,21 @@ def spherical_harmonics(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
         >>> spherical_harmonics(1, torch.tensor([[0.0, 0.0, 1.0]]), sh)  # SH_C0 * 1
         tensor([[0.2821, 0.2821, 0.2821]])
     """
-    out = SH_C0 * coeffs[:, 0]  # [N, 3]
+    n_basis = (degree + 1) ** 2
     if degree < 1:
-        return out
+        return SH_C0 * coeffs[:, 0]  # [N, 3]
     d = F.normalize(dirs, p=2, dim=-1)  # [N, 3]
-    x, y, z = (d[:, i : i + 1] for i in range(3))  # [N, 1] each
-    out = out + SH_C1 * (-y * coeffs[:, 1] + z * coeffs[:, 2] - x * coeffs[:, 3])
-    if degree < 2:
-        return out
-    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-    out = (
-        out
-        + SH_C2[0] * xy * coeffs[:, 4]
-        + SH_C2[1] * yz * coeffs[:, 5]
-        + SH_C2[2] * (2.0 * zz - xx - yy) * coeffs[:, 6]
-        + SH_C2[3] * xz * coeffs[:, 7]
-        + SH_C2[4] * (xx - yy) * coeffs[:, 8]
-    )
-    if degree < 3:
-        return out
-    out = (
-        out
-        + SH_C3[0] * y * (3.0 * xx - yy) * coeffs[:, 9]
-        + SH_C3[1] * xy * z * coeffs[:, 10]
-        + SH_C3[2] * y * (4.0 * zz - xx - yy) * coeffs[:, 11]
-        + SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * coeffs[:, 12]
-        + SH_C3[4] * x * (4.0 * zz - xx - yy) * coeffs[:, 13]
-        + SH_C3[5] * z * (xx - yy) * coeffs[:, 14]
-        + SH_C3[6] * x * (xx - 3.0 * yy) * coeffs[:, 15]
-    )
-    return out
+    x, y, z = d.unbind(-1)  # [N] each
+    basis = [torch.full_like(x, SH_C0), -SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree >= 2:
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        basis += [SH_C2[0] * xy, SH_C2[1] * yz, SH_C2[2] * (2.0 * zz - xx - yy), SH_C2[3] * xz,
+                  SH_C2[4] * (xx - yy)]
+    if degree >= 3:
+        basis += [
+            SH_C3[0] * y * (3.0 * xx - yy), SH_C3[1] * xy * z, SH_C3[2] * y * (4.0 * zz - xx - yy),
+            SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy), SH_C3[4] * x * (4.0 * zz - xx - yy),
+            SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3.0 * yy),
+        ]
+    B = torch.stack(basis, dim=-1)  # [N, n_basis]
+    return torch.bmm(B[:, None, :], coeffs[:, :n_basis]).squeeze(1)  # [N, 3]
