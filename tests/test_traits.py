@@ -327,3 +327,28 @@ def test_extent_sampling_from_splat_ply(tmp_path):
     assert out["height_cm"] == pytest.approx(h0 + 1.0, rel=0.01)
     assert out["quality"] == "ok", out["quality_reasons"]
     assert out["fruit_count"] == 3  # colours from the SH DC term
+
+
+def test_traits_command_unscaled_workspace_uses_cube_and_cameras(tmp_path):
+    from plantsplat.cli import main
+
+    pts, cols, plant = make_plant_scene(seed=12, floaters=False)
+    R = Rotation.random(random_state=2).as_matrix()
+    s, t = 0.21, np.array([1.0, 2.0, -3.0])
+    ang = np.linspace(0, 2 * np.pi, 30, endpoint=False)
+    cams = np.stack([25 + 45 * np.cos(ang), 45 * np.sin(ang), np.full(30, 30.0)], 1)  # around the plant
+    frames = []
+    for c in cams @ R.T * s + t:
+        m = np.eye(4)
+        m[:3, 3] = c
+        frames.append({"file_path": "images/x.png", "transform_matrix": m.tolist()})
+    ws = tmp_path / "ws"
+    _write_points_ply(ws / "export" / "points.ply", (pts @ R.T) * s + t, cols, np.ones(len(pts)))
+    (ws / "poses.json").write_text(json.dumps({"scale_source": "none"}))
+    (ws / "transforms.json").write_text(json.dumps({"frames": frames}))
+    assert main(["traits", str(ws), "--no-figure"]) == 0
+    out = json.loads((ws / "traits.json").read_text())
+    assert out["scale_source"] == "cube_planes" and out["quality"] == "ok", out["quality_reasons"]
+    assert out["scale"]["up_method"].startswith("cameras")
+    assert _rel(out["width1_cm"], traitdefs.pca_widths(pts[plant])[0]) < 0.01
+    assert _rel(out["height_cm"], traitdefs.plant_height(pts[plant])) < 0.01
