@@ -352,3 +352,11 @@ def test_traits_command_unscaled_workspace_uses_cube_and_cameras(tmp_path):
     assert out["scale"]["up_method"].startswith("cameras")
     assert _rel(out["width1_cm"], traitdefs.pca_widths(pts[plant])[0]) < 0.01
     assert _rel(out["height_cm"], traitdefs.plant_height(pts[plant])) < 0.01
+
+
+def test_large_clouds_clustered_on_a_subset_give_the_same_plant():
+    pts, cols, plant = make_plant_scene(seed=1)
+    res = measure_traits(pts, cols, calibrated=True, settings=TraitSettings(max_cluster_points=6000))
+    assert res.quality == "ok", res.reasons
+    assert len(res.plant_points) == int(plant.sum())
+    assert res.traits["height_cm"] == pytest.approx(traitdefs.plant_height(pts[plant]), rel=1e-9)

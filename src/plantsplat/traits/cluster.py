@@ -86,14 +86,18 @@ def dbscan(
     from scipy.spatial import cKDTree
 
     pts = np.asarray(points, dtype=np.float64)  # [N, 3]
-    if eps is None:
-        ref = pts if eps_reference is None else np.asarray(eps_reference, dtype=np.float64)
-        eps = choose_eps(ref, calibrated, min_points)
     rng = np.random.default_rng(seed)
     if len(pts) > max_points:
         sub = np.sort(rng.choice(len(pts), size=max_points, replace=False))
     else:
         sub = np.arange(len(pts))
+    if eps is None:
+        # the radius follows the spacing of the points DBSCAN actually sees (the subset, if any)
+        ref = pts if eps_reference is None else np.asarray(eps_reference, dtype=np.float64)
+        frac = len(sub) / len(pts)
+        if frac < 1:
+            ref = ref[rng.choice(len(ref), size=max(min_points + 2, int(len(ref) * frac)), replace=False)]
+        eps = choose_eps(ref, calibrated, min_points)
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[sub]))
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         lab_sub = np.asarray(pc.cluster_dbscan(eps=float(eps), min_points=int(min_points)), dtype=np.int64)
