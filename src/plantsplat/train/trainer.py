@@ -53,7 +53,8 @@ from plantsplat.train.config import PRESETS, ResolvedConfig, TrainConfig  # noqa
 class ImageCache:
     """Per view, per downscale factor: image ``[h, w, 3]`` and alpha ``[h, w, 1]`` float tensors."""
 
-    def __init__(self, views: list[D.View], base_scale: float):
+    def __init__(self, views: list[D.View], base_scale: float, device: str | torch.device = "cpu"):
+        self.device = torch.device(device)
         self.views = {v.name: v for v in views}
         self.base_scale = base_scale  # full resolution -> largest training resolution
         self._cache: dict[tuple[str, int], tuple] = {}
@@ -77,7 +78,9 @@ class ImageCache:
             K = v.K.copy()
             K[0, :] *= w / v.width
             K[1, :] *= h / v.height
-            self._cache[key] = (img_t, a_t, torch.tensor(K, dtype=torch.float32), w, h)
+            dev = self.device
+            self._cache[key] = (img_t.to(dev), None if a_t is None else a_t.to(dev),
+                                torch.tensor(K, dtype=torch.float32, device=dev), w, h)
         return self._cache[key]
 
 
@@ -187,7 +190,8 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
     rc.strategy = asdict(strategy)
     max_side = max(max(v.width, v.height) for v in scene.views)
     base_scale = min(1.0, rc.max_resolution / max_side) if rc.max_resolution else 1.0
-    cache = ImageCache(scene.views, base_scale)
+    device = torch.device("cuda" if rc.backend == "gsplat" else "cpu")
+    cache = ImageCache(scene.views, base_scale, device)
 
     rng = np.random.default_rng(rc.seed)
     torch.manual_seed(rc.seed)
@@ -201,7 +205,7 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
                 f"{paths['ckpt']}: an unfinished {old.get('mode')!r}-mode run of {old.get('iterations')} steps; "
                 "re-run with the same options to resume it, or pass --force to start again"
             )
-        params = params_from_checkpoint(blob)
+        params = params_from_checkpoint(blob).to(device)
         optimizers = make_optimizers(params, _lrs(rc, sscale))
         for k, o in optimizers.items():
             o.load_state_dict(blob["optimizers"][k])
@@ -215,7 +219,7 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
                  params["means"].shape[0])
     else:
         pts, cols, how = D.initial_points(scene, train_views, object_mode, cfg.init_points, rng)
-        params = init_params(pts, cols, rc.sh_degree, rc.init_opacity, seed=rc.seed)
+        params = init_params(pts, cols, rc.sh_degree, rc.init_opacity, seed=rc.seed).to(device)
         optimizers = make_optimizers(params, _lrs(rc, sscale))
         state = strategy.initialize_state(sscale)
         elapsed0 = 0.0
@@ -246,7 +250,7 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
             down = 2 ** max(0, rc.num_downscales - step // sched["res_interval"])
             sh_deg = min(rc.sh_degree, step // sched["sh_interval"])
             img, alpha, K, w, h = cache.get(view.name, down)
-            viewmat = torch.tensor(view.viewmat, dtype=torch.float32)
+            viewmat = torch.tensor(view.viewmat, dtype=torch.float32, device=device)
             if object_mode and rc.crop:
                 x0, y0, x1, y1 = foreground_box(alpha)
             else:
@@ -255,7 +259,7 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
             Kc[0, 2] -= x0
             Kc[1, 2] -= y0
             gt = img[y0:y1, x0:x1]  # [h', w', 3]
-            bg = torch.from_numpy(rng.random(3)).float()  # [3] random background each step
+            bg = torch.from_numpy(rng.random(3)).float().to(device)  # [3] random background each step
             if object_mode:
                 a = alpha[y0:y1, x0:x1]  # [h', w', 1]
                 gt = gt * a + (1.0 - a) * bg
