@@ -90,7 +90,8 @@ def test_ground_truth_traits_recomputed_independently(synth_capture):
     assert gt["width2_cm"] == pytest.approx(ext[1], abs=1e-3)
     assert gt["canopy_volume_cm3"] == pytest.approx(ConvexHull(xyz).volume, rel=1e-5)
     assert gt["canopy_area_cm2"] == pytest.approx(ConvexHull(xyz[:, :2]).volume, rel=1e-5)
-    assert gt["fruit_count"] == len(np.unique(v["instance"][v["organ"] == 4])) == gt["plant"]["n_fruits"]
+    assert gt["fruit_count_all"] == len(np.unique(v["instance"][v["organ"] == 4])) == gt["plant"]["n_fruits"]
+    assert gt["fruit_count"] == sum(f["ripe"] for f in gt["plant"]["fruits"])  # ripe (red) fruit only
     assert gt["plant"]["n_leaves"] == len(np.unique(v["instance"][v["organ"] == 1]))
     # the plant grows from the soil and stays above the platform
     assert xyz[:, 2].min() > 0 and abs(np.median(xyz[v["organ"] == 3, 2]) - gt["plant"]["soil_z_cm"]) < 3

@@ -17,7 +17,8 @@ from __future__ import annotations
 import numpy as np
 
 TRAIT_KEYS = ("height_cm", "width1_cm", "width2_cm", "canopy_volume_cm3", "canopy_area_cm2", "fruit_count")
-"""The keys shared by ``ground_truth.json`` and ``traits.json``."""
+"""The keys shared by ``ground_truth.json`` and ``traits.json``. ``fruit_count`` counts ripe (red)
+fruit, the ones a colour model can tell from leaves; synthetic captures also give ``fruit_count_all``."""
 
 
 def _check(points: np.ndarray) -> np.ndarray:

@@ -136,7 +136,8 @@ def generate(cfg: SynthConfig) -> dict:
     plant = gt.sample_surface(scene["plant_meshes"], layers, cfg.gt_density, rng_gt)
     cube_meshes = [m for m in scene["meshes"] if m.cls in CUBE_CLASSES]
     cube_s = gt.cube_samples(cube_meshes, layers, cfg.gt_density, rng_gt)
-    traits = gt.traits(plant["xyz"], scene["plant_info"]["n_fruits"])
+    n_ripe = sum(bool(f["ripe"]) for f in scene["plant_info"]["fruits"])
+    traits = gt.traits(plant["xyz"], n_ripe)
     gt.write_ply(out / "plant_gt.ply", plant)
     gt.write_ply(out / "scene_gt.ply", {k: np.concatenate([plant[k], cube_s[k]]) for k in plant})
     timings["ground_truth_s"] = time.perf_counter() - t
@@ -234,6 +235,7 @@ def generate(cfg: SynthConfig) -> dict:
         format=FORMAT, seed=int(cfg.seed), units="cm", world_frame=WORLD_FRAME,
         **{k: traits[k] for k in ("height_cm", "width1_cm", "width2_cm", "canopy_volume_cm3", "canopy_area_cm2",
                                   "fruit_count")},
+        fruit_count_all=int(scene["plant_info"]["n_fruits"]),
         trait_source="plant_gt.ply (all plant mesh vertices + area-uniform samples), plantsplat.traitdefs",
         plant=plant_json, platform=scene["platform"], room=scene["room"], lights=scene["lights"],
         intrinsics=intr, pixel_convention=PIXEL_CONVENTION, camera_convention=CAMERA_CONVENTION,

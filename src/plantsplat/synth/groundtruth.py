@@ -97,7 +97,8 @@ def read_ply(path: str | Path) -> dict[str, np.ndarray]:
 
 
 def traits(xyz: np.ndarray, n_fruits: int) -> dict[str, float]:
-    """Ground-truth traits with the shared definitions of :mod:`plantsplat.traitdefs`."""
+    """Ground-truth traits with the shared definitions of :mod:`plantsplat.traitdefs`
+    (``n_fruits``: the ripe, red fruits, which is what ``fruit_count`` counts)."""
     from plantsplat.traitdefs import geometric_traits
 
     t = geometric_traits(xyz)
