@@ -290,7 +290,13 @@ def _run_sfm(ws: Workspace, names: list[str], cfg: PosesConfig, detections: dict
         seed_dir.mkdir(parents=True)
         with sfm.colmap_logging(opts.verbose):
             rec.write_binary(str(seed_dir))
-        log.info("SfM: %d frames missing, continuing incremental mapping", n - rec.num_reg_images())
+        extra = sfm.pairs_for_missing(names, rec)
+        log.info(
+            "SfM: %d frames missing: matching %d more pairs around them, continuing incremental mapping",
+            n - rec.num_reg_images(), len(extra),
+        )
+        if extra:
+            sfm.match_pairs(db, work, extra, opts, "missing")
         try:
             cont = sfm.incremental(db, ws.images_dir, work / "continued", opts, input_path=seed_dir)
         except Exception as exc:  # COLMAP refuses a seed it cannot extend: keep what we have
@@ -486,8 +492,15 @@ def estimate_poses(ws: Workspace | str | Path, cfg: PosesConfig | None = None, f
     if missing:
         shown = ", ".join(missing[:10]) + (f" and {len(missing) - 10} more" if len(missing) > 10 else "")
         if len(reg) < cfg.min_registered * len(names):
+            found = report.get("models_found") or []
+            split = (
+                f"COLMAP split the capture into {len(found)} models ({', '.join(map(str, found))} frames) that could "
+                "not be merged (each part must see the cube); "
+                if len(found) > 1 and report.get("models_merged", 1) < len(found)
+                else ""
+            )
             raise PlantsplatError(
-                f"{ws.images_dir}: only {len(reg)}/{len(names)} frames registered (unregistered: {shown}); "
+                f"{ws.images_dir}: only {len(reg)}/{len(names)} frames registered; {split}unregistered: {shown}; "
                 "outputs were written for the registered frames; re-take the video more slowly or with more overlap, "
                 "or try --matcher exhaustive",
                 exit_code=3,

@@ -165,7 +165,9 @@ def guided_pairs(names: list[str], directions: dict[str, np.ndarray], opts: SfmO
         steps.add(2**k + opts.guided_window - 1)
         k += 1
     for i in range(n):
-        for d in steps:
+        # frames that do not see the cube only have their video neighbours: give them a wider window
+        wide = names[i] not in directions or (i + 1 < n and names[i + 1] not in directions)
+        for d in steps | (set(range(1, 2 * opts.guided_window + 1)) if wide else set()):
             if i + d < n:
                 pairs.add((i, i + d))
     idx = [i for i, nm in enumerate(names) if nm in directions]
@@ -339,3 +341,54 @@ def refine(rec, db: Path, image_dir: Path, work_dir: Path, opts: SfmOptions, ret
 def n_threads_env(n: int) -> None:
     """Cap OpenMP/BLAS threads used inside COLMAP's dependencies."""
     os.environ.setdefault("OMP_NUM_THREADS", str(n))
+
+
+def match_pairs(db: Path, work_dir: Path, pairs: list[tuple[str, str]], opts: SfmOptions, tag: str) -> None:
+    """Match and verify extra image ``pairs`` into ``db`` (pairs matched before are skipped by COLMAP)."""
+    import pycolmap
+
+    pair_file = work_dir / f"pairs_{tag}.txt"
+    pair_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
+    mopts = pycolmap.FeatureMatchingOptions()
+    mopts.num_threads = opts.num_threads
+    verif = pycolmap.TwoViewGeometryOptions()
+    verif.ransac.random_seed = opts.seed
+    verif.ransac.max_num_trials = opts.ransac_max_trials
+    verif.detect_watermark = False
+    pairing = pycolmap.ImportedPairingOptions()
+    pairing.match_list_path = str(pair_file)
+    with colmap_logging(opts.verbose):
+        pycolmap.match_image_pairs(
+            db, matching_options=mopts, pairing_options=pairing, verification_options=verif, device=pycolmap.Device.cpu
+        )
+
+
+def pairs_for_missing(names: list[str], rec, k: int = 12, window: int = 3) -> list[tuple[str, str]]:
+    """Pairs linking each unregistered frame to registered frames near its registered video neighbours.
+
+    For a missing frame, the registered frames closest in video order (up to ``window`` on each
+    side) stand in for its unknown position; the ``k`` registered cameras nearest to each of them
+    (camera centres in the model) are paired with it.
+    """
+    reg = {im.name: np.asarray(im.projection_center()) for im in rec.images.values() if im.has_pose}
+    reg_names = [n for n in names if n in reg]
+    if not reg_names:
+        return []
+    C = np.array([reg[n] for n in reg_names])  # [R, 3]
+    order = {n: i for i, n in enumerate(names)}
+    pairs = set()
+    for i, n in enumerate(names):
+        if n in reg:
+            continue
+        before = [m for m in names[max(0, i - 4 * window) : i] if m in reg][-window:]
+        after = [m for m in names[i + 1 : i + 1 + 4 * window] if m in reg][:window]
+        for m in before + after:
+            d = np.linalg.norm(C - reg[m], axis=1)
+            for j in np.argsort(d)[:k]:
+                a, b = sorted((n, reg_names[j]), key=order.get)
+                pairs.add((a, b))
+        for m in names[max(0, i - 2 * window) : i + 2 * window + 1]:  # its video neighbours, registered or not
+            if m != n:
+                a, b = sorted((n, m), key=order.get)
+                pairs.add((a, b))
+    return sorted(pairs, key=lambda p: (order[p[0]], order[p[1]]))
