@@ -1,0 +1,126 @@
+"""End-to-end tests of the poses stage with real SfM: a synthetic capture against its ground truth,
+and the real ROMI plant against its given poses (up to a similarity)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pycolmap")
+
+from plantsplat.io import read_json, write_image_atomic  # noqa: E402
+from plantsplat.poses import PosesConfig, estimate_poses  # noqa: E402
+from plantsplat.poses.evaluate import compare_poses, model_c2w, synth_reference, transforms_c2w  # noqa: E402
+from plantsplat.poses.interop import read_colmap  # noqa: E402
+from plantsplat.workspace import Workspace  # noqa: E402
+
+
+SLOW = pytest.mark.skipif(
+    not os.environ.get("PLANTSPLAT_SLOW_TESTS"),
+    reason="synthetic SfM run takes minutes (render + SfM of 72 frames); set PLANTSPLAT_SLOW_TESTS=1",
+)
+
+
+@pytest.fixture(scope="module")
+def synth_run(synth_capture, tmp_path_factory):
+    # 72 frames (24 per ring, 15 degrees apart) at 360x640: smaller captures do not register (SIFT finds
+    # too few matches 22 degrees apart at 270x480); the benchmark runs the real size, 120 at 540x960
+    cap = synth_capture(seed=3, frames=72, width=360, height=640)
+    ws = Workspace(tmp_path_factory.mktemp("poses_synth") / "ws")
+    shutil.copytree(cap / "frames", ws.images_dir)
+    report = estimate_poses(ws, PosesConfig())
+    return cap, ws, report
+
+
+@SLOW
+def test_synthetic_capture_metric_poses(synth_run):
+    cap, ws, report = synth_run
+    gt = read_json(cap / "ground_truth.json")
+    ref = synth_reference(gt)
+    assert report["scale_source"] == "aruco"
+    assert report["registered"] >= 0.85 * report["total"], report["unregistered"]
+    est = transforms_c2w(read_json(ws.transforms_json))
+    err = compare_poses(est, ref)
+    # both frames are metric with z up: the fitted similarity is the calibration error
+    # (measured on this capture: scale 1.6 %, up 0.08 deg, origin 0.5 cm, rotation 0.7 deg, centre 0.9 cm;
+    # the 120-frame 540x960 benchmark captures meet the issue's targets)
+    assert err["scale_error_pct"] < 3.0, err
+    assert err["up_error_deg"] < 0.5, err
+    assert err["origin_error"] < 1.5, err  # cm
+    assert err["rotation_error_deg"]["median"] < 1.5, err
+    assert err["centre_error"]["median"] < 2.0, err  # cm
+    # the binary and text COLMAP models hold the same calibrated cameras as transforms.json
+    for d in (ws.sparse_dir, ws.sparse_text_dir):
+        m = compare_poses(model_c2w(read_colmap(d)), est)
+        assert m["centre_error"]["max"] < 1e-3 and abs(m["similarity"]["scale"] - 1) < 1e-6
+
+
+@SLOW
+def test_synthetic_outputs_and_resume(synth_run):
+    cap, ws, report = synth_run
+    from plyfile import PlyData
+
+    ply = PlyData.read(str(ws.sparse_points_ply))["vertex"]
+    assert ply.count == report["num_points"] > 100
+    assert {"x", "y", "z", "red", "green", "blue"} <= {p.name for p in ply.properties}
+    data = json.loads(ws.transforms_json.read_text())
+    assert data["camera_model"] == "OPENCV" and data["w"] == 360 and data["h"] == 640
+    # the cube's own corners are where calibration put them: markers reproject within a few pixels
+    assert report["similarity"]["median_residual_px"] < 2.0
+    # z is up: every camera is above the ground plane
+    assert all(np.asarray(f["transform_matrix"])[2, 3] > 0 for f in data["frames"])
+    mtime = ws.poses_json.stat().st_mtime_ns
+    again = estimate_poses(ws, PosesConfig())
+    assert again["fingerprint"] == report["fingerprint"] and ws.poses_json.stat().st_mtime_ns == mtime
+
+
+@SLOW
+def test_import_colmap_is_recalibrated(synth_run, tmp_path):
+    """A user's model in arbitrary units and orientation is brought into the cube frame on import."""
+    import pycolmap
+
+    cap, ws, report = synth_run
+    rec = read_colmap(ws.sparse_dir)
+    rec.transform(pycolmap.Sim3d(0.037, pycolmap.Rotation3d(np.array([0.3, -1.1, 0.4])), np.array([[5.0], [-2.0], [1.0]])))
+    user = tmp_path / "user_model"
+    user.mkdir()
+    rec.write_text(str(user))
+    ws2 = Workspace(tmp_path / "ws2")
+    shutil.copytree(ws.images_dir, ws2.images_dir)
+    rep = estimate_poses(ws2, PosesConfig(import_colmap=user))
+    assert rep["scale_source"] == "aruco" and rep["registered"] == report["registered"]
+    err = compare_poses(transforms_c2w(read_json(ws2.transforms_json)), transforms_c2w(read_json(ws.transforms_json)))
+    assert err["scale_error_pct"] < 0.1 and err["up_error_deg"] < 0.05 and err["centre_error"]["max"] < 0.05
+
+
+def test_romi_real_plant_matches_given_poses(datasets_dir, tmp_path):
+    """COLMAP from the 60 ROMI frames (downscaled to 720x540) against the scanner's poses, up to a similarity.
+
+    No cube in this scan: the unscaled path (scale_source 'none') is exercised too.
+    """
+    import cv2
+
+    src = datasets_dir / "romi_real_plant"
+    if not src.is_dir():
+        pytest.skip(f"{src} not found")
+    ws = Workspace(tmp_path / "ws")
+    names = sorted(p.name for p in (src / "images").iterdir())
+    for n in names:
+        img = cv2.cvtColor(cv2.imread(str(src / "images" / n)), cv2.COLOR_BGR2RGB)
+        write_image_atomic(ws.images_dir / (n.rsplit(".", 1)[0] + ".png"), cv2.resize(img, (720, 540), interpolation=cv2.INTER_AREA))
+    report = estimate_poses(ws, PosesConfig())
+    assert report["scale_source"] == "none" and report["units"] == "model units"
+    assert report["registered"] == len(names)
+    given = transforms_c2w(read_json(src / "transforms.json"))
+    given = {k.rsplit(".", 1)[0] + ".png": v for k, v in given.items()}
+    err = compare_poses(transforms_c2w(read_json(ws.transforms_json)), given)
+    assert err["n_compared"] == len(names)
+    assert err["rotation_error_deg"]["median"] < 1.0, err
+    assert err["centre_error"]["median"] < 5.0, err  # mm, on a 300 mm circle
+    # the focal length (scaled to 720 px wide) agrees with the scanner's calibration
+    f = report["camera"]["params"][0]
+    assert f == pytest.approx(1158.76 * 0.5, rel=0.05)  # measured: 3.8 % above (the scanner used OPENCV, we RADIAL)
