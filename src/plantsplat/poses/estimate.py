@@ -8,10 +8,12 @@ Robust default (``mapper='auto'``), because COLMAP's defaults split or break pla
    where they are detected) and calibrated into the cube frame;
 2. consistent fragments are merged in the cube frame (the cube is their common reference), all
    matches are re-triangulated with the merged poses and the whole model is bundle-adjusted;
-3. frames still missing are registered by continuing incremental mapping from the merged model;
-4. if frames are still missing, global mapping (rotation averaging + global positioning) is run
-   and kept when it registers more frames with a consistent cube;
-5. the final model is calibrated once more (scale, gravity, origin) and written out.
+3. frames still missing get extra pairs (to the registered frames nearest to their registered video
+   neighbours) and incremental mapping continues from the model;
+4. if fewer than ``min_registered`` of the frames are in, global mapping (rotation averaging +
+   global positioning) is run and kept when it registers more frames with a consistent cube;
+5. the final model is calibrated (scale, gravity, origin), bundle-adjusted with the cube's marker
+   corners as fixed control points, and written out.
 
 Example:
     >>> from plantsplat.poses import PosesConfig, estimate_poses
