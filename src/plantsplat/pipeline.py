@@ -195,7 +195,10 @@ def _stage_frames(ws: Workspace, source: Path | None, opts: RunOptions) -> dict:
 
     if source is None:
         raise PlantsplatError(f"{ws.root}: no input video or image folder given")
-    return extract_frames(source, ws, num=opts.num_frames, max_size=opts.max_size)
+    # a finished extraction with other settings (its stamp differs) is redone; without a stamp the
+    # stage resumes, and refuses to replace frames it did not extract itself
+    redo = _read_stamp(ws, "frames") is not None
+    return extract_frames(source, ws, num=opts.num_frames, max_size=opts.max_size, force=redo)
 
 
 def _stage_segment(ws: Workspace, source: Path | None, opts: RunOptions) -> dict:
