@@ -27,6 +27,9 @@ import numba
 import numpy as np
 import torch
 from numba import njit, prange
+
+# OpenMP first: the TBB that some wheels bring is too old for numba and would only print a warning
+numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 from torch import Tensor
 
 _F32 = np.float32
