@@ -58,6 +58,8 @@ class PosesConfig:
     """COLMAP camera model shared by all frames (phones: RADIAL)."""
     max_features: int = 2048
     """SIFT features per frame."""
+    sift_first_octave: int = -1
+    """SIFT first octave: -1 upsamples frames 2x (more small features, COLMAP's default); 0 is faster."""
     import_colmap: Path | None = None
     """Use this COLMAP model (folder with cameras/images/points3D, .bin or .txt) instead of running SfM."""
     import_transforms: Path | None = None
@@ -94,6 +96,7 @@ class PosesConfig:
             matcher=self.matcher,
             mapper=self.mapper,
             max_features=self.max_features,
+            first_octave=self.sift_first_octave,
             num_threads=self.num_threads,
             seed=self.seed,
             verbose=self.colmap_log,

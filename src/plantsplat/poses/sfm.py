@@ -49,6 +49,8 @@ class SfmOptions:
     """SIFT features kept per frame."""
     peak_threshold: float = 0.004
     """SIFT peak threshold (COLMAP: 0.0067); lower finds more features on plain walls and small frames."""
+    first_octave: int = -1
+    """SIFT first octave: -1 (COLMAP's default) upsamples the frame 2x to find small features; 0 is faster."""
     max_image_size: int = 1600
     """Longest side used for feature extraction (pixels); larger frames are downscaled."""
     exhaustive_max_frames: int = 80
@@ -215,6 +217,7 @@ def extract_and_match(
     ext.max_image_size = opts.max_image_size
     ext.sift.max_num_features = opts.max_features
     ext.sift.peak_threshold = opts.peak_threshold
+    ext.sift.first_octave = opts.first_octave
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = opts.camera_model
     with colmap_logging(opts.verbose):
