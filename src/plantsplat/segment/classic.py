@@ -75,6 +75,8 @@ class ClassicSettings:
     """Frames without any pose borrow one interpolated over at most this many frames (plant region only)."""
     min_poses: int = 6
     """Fewer frames with a cube pose than this: fall back to the 2D plant locator."""
+    remove_pot: bool = True
+    """Find a plant-coloured pot (a solid disc-sectioned block on the ground in the visual hull) and leave it out."""
 
 
 @dataclass
@@ -89,6 +91,7 @@ class CaptureContext:
     pose_source: list[str] = field(default_factory=list)
     roi_poses: list[np.ndarray | None] = field(default_factory=list)  # poses, gaps bridged loosely
     hull_points: np.ndarray | None = None  # [M, 3] plant voxel centres (cube frame, cm)
+    pot: dict[str, Any] | None = None  # plant-coloured pot frustum (geometry.find_pot), left out of the masks
     voxel: float = 0.0
     centre: np.ndarray | None = None
     info: dict[str, Any] = field(default_factory=dict)
@@ -184,6 +187,10 @@ class ClassicSegmenter:
         if centre is None:
             log.warning("segment: the camera does not circle a point; locating the plant in 2D")
             return
+        # every frame gets a camera: gaps interpolated along the orbit, ends extrapolated
+        ctx.roi_poses, filled = geo.fill_orbit_poses(ctx.poses, centre)
+        ctx.pose_source = ["orbit" if f else h for f, h in zip(filled, ctx.pose_source)]
+        ctx.info["frames_with_orbit_pose"] = int(sum(filled))
         horiz = np.hypot(cams[:, 0] - centre[0], cams[:, 1] - centre[1])
         D = float(np.median(horiz))
         depth = float(np.median(np.linalg.norm(cams - centre, axis=1)))
@@ -209,7 +216,16 @@ class ClassicSegmenter:
         if len(idx) == 0:
             log.warning("segment: no plant-coloured volume found around the orbit centre; locating the plant in 2D")
             return
-        ctx.hull_points = origin + idx * vs
+        pts = origin + idx * vs  # [M, 3]
+        pot = geo.find_pot(plant, origin, vs) if s.remove_pot else None
+        if pot is not None:
+            pts = pts[~geo.pot_inside(pts, pot, margin=1.5 * vs)]  # the hull is about a voxel fatter
+            ctx.info["pot"] = {"axis": np.round(pot["axis"], 2).tolist(), "z_cm": np.round(pot["z"], 2).tolist(),
+                               "r_cm": np.round(pot["r"], 2).tolist()}
+            log.info("segment: plant-coloured pot found (rim at %.1f cm, radius %.1f cm); left out", pot["z"][1],
+                     pot["r"][1])
+        ctx.pot = pot
+        ctx.hull_points = pts
         ctx.voxel = vs
         ctx.centre = centre
         self._Ks = Ks
@@ -232,8 +248,47 @@ class ClassicSegmenter:
         roi = np.zeros((h, w), np.uint8)
         roi[v[inside], u[inside]] = 1
         depth = float(np.median(z[ok])) if ok.any() else 1.0
-        r = (0.87 * ctx.voxel + s.roi_margin_cm * (3.0 if loose else 1.0)) * self._Ks[0, 0] / max(depth, 1e-3)
+        r = (0.87 * ctx.voxel + s.roi_margin_cm * (1.5 if loose else 1.0)) * self._Ks[0, 0] / max(depth, 1e-3)
         return cv2.dilate(roi, _disk(np.ceil(r))).astype(bool)
+
+    def _pot_mask(self, i: int, ctx: CaptureContext, W: int, H: int) -> np.ndarray:
+        """Pixels of frame ``i`` where the (plant-coloured) pot is seen, not plant in front of it: bool ``[H, W]``."""
+        import cv2
+
+        T = ctx.roi_poses[i]
+        sil = geo.pot_silhouette(ctx.pot, T, ctx.K, (W, H))
+        if not sil.any():
+            return sil
+        # plant voxels nearer to the camera than the pot's axis (at their height) hide the pot
+        pts = ctx.hull_points
+        _, z = geo.project(pts, T, self._Ks)
+        zc = np.clip(pts[:, 2], *ctx.pot["z"])
+        axis = np.stack([np.full(len(pts), ctx.pot["axis"][0]), np.full(len(pts), ctx.pot["axis"][1]), zc], 1)
+        _, za = geo.project(axis, T, self._Ks)
+        front = pts[z < za]
+        h, w = self._smalls[i].shape
+        fr = np.zeros((h, w), np.uint8)
+        if len(front):
+            uv, zf = geo.project(front, T, self._Ks)
+            u = np.round(uv[:, 0]).astype(np.int64)
+            v = np.round(uv[:, 1]).astype(np.int64)
+            ok = (zf > 1e-3) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+            fr[v[ok], u[ok]] = 1
+            r = 0.87 * ctx.voxel * self._Ks[0, 0] / max(float(np.median(zf)), 1e-3)
+            fr = cv2.dilate(fr, _disk(np.ceil(r)))
+        fr_full = cv2.resize(fr, (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
+        return sil & ~fr_full
+
+    def _pot_hides_cube(self, i: int, ctx: CaptureContext, W: int, H: int) -> np.ndarray:
+        """The pot's silhouette where the cube stands behind the pot in frame ``i`` (else nothing): bool ``[H, W]``."""
+        T = ctx.roi_poses[i]
+        cc = self.s.cube.corners().mean(axis=0, keepdims=True)  # [1, 3] cube centre
+        axis = np.array([[ctx.pot["axis"][0], ctx.pot["axis"][1], float(np.mean(ctx.pot["z"]))]])
+        _, zc = geo.project(cc, T, ctx.K)
+        _, za = geo.project(axis, T, ctx.K)
+        if zc[0] <= za[0]:
+            return np.zeros((H, W), bool)
+        return geo.pot_silhouette(ctx.pot, T, ctx.K, (W, H))
 
     def _roi_2d(self, i: int) -> np.ndarray:
         """Plant region without geometry: plant-coloured blobs nearest the image centre, joined."""
@@ -267,28 +322,32 @@ class ClassicSegmenter:
 
         s = self.s
         H, W = rgb.shape[:2]
-        strong, weak, pale = plant_colour_masks(rgb, s.colour)
+        strong, weak, pale, red_only = plant_colour_masks(rgb, s.colour, with_red=True)
         roi_small = self._roi_3d(i, ctx)
         locator = "3d" if ctx.poses and ctx.poses[i] is not None else "3d-interpolated"
         if roi_small is None:
             roi_small = self._roi_2d(i)
             locator = "2d"
         roi = cv2.resize(roi_small.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
+        if ctx.pot is not None and locator != "2d":
+            roi &= ~self._pot_mask(i, ctx, W, H)
         seeds = strong & roi
         band = cv2.dilate(seeds.astype(np.uint8), _disk(s.weak_band * max(H, W))).astype(bool)
-        cand = (weak & roi & band).astype(np.uint8)
-        # hysteresis: weak components that contain a strong pixel
-        n, lab = cv2.connectedComponents(cand, connectivity=8)
+        # hysteresis: weak components that contain a strong pixel; red ones only from strong red (fruit),
+        # so that dark red/purple walls next to leaves are not grown into
         plant = np.zeros((H, W), bool)
-        if n > 1:
-            has_seed = np.zeros(n, bool)
-            has_seed[np.unique(lab[seeds])] = True
-            has_seed[0] = False
-            plant = has_seed[lab]
+        red_seeds = seeds & red_only
+        for cand, sd in (((weak & ~red_only & roi & band), seeds & ~red_only), ((red_only & roi & band), red_seeds)):
+            n, lab = cv2.connectedComponents(cand.astype(np.uint8), connectivity=8)
+            if n > 1:
+                has_seed = np.zeros(n, bool)
+                has_seed[np.unique(lab[sd & cand])] = True
+                has_seed[0] = False
+                plant |= has_seed[lab]
         # fruit- and flower-sized blobs of weak or pale colour touching the plant (unripe fruit, petals):
         # accepted whole, unlike large weak regions which only count within the band around strong seeds
         if plant.any():
-            blob = ((weak | pale) & roi & ~plant).astype(np.uint8)
+            blob = (((weak & ~red_only) | pale) & roi & ~plant).astype(np.uint8)
             n2, lab2, st2, _ = cv2.connectedComponentsWithStats(blob, connectivity=8)
             if n2 > 1:
                 touch = cv2.dilate(plant.astype(np.uint8), _disk(2)).astype(bool)
@@ -313,9 +372,12 @@ class ClassicSegmenter:
         plant_fraction = float(plant.mean())
         cube = np.zeros((H, W), bool)
         pose = ctx.pose_source[i] if ctx.pose_source else "none"
-        draw = ("markers", "features") if s.cube_from_features else ("markers",)
-        if s.use_cube and ctx.poses and ctx.pose_source[i] in draw and ctx.K is not None:
-            cube = geo.cube_silhouette(ctx.poses[i], ctx.K, ctx.dist, (W, H), s.cube)
+        draw = ("markers", "features", "interpolated", "orbit") if s.cube_from_features else ("markers",)
+        if s.use_cube and ctx.roi_poses and ctx.roi_poses[i] is not None and ctx.pose_source[i] in draw \
+                and ctx.K is not None:
+            cube = geo.cube_silhouette(ctx.roi_poses[i], ctx.K, ctx.dist, (W, H), s.cube)
+            if ctx.pot is not None and cube.any():
+                cube &= ~self._pot_hides_cube(i, ctx, W, H)
         fg = plant | cube
         return plant, cube, {"plant_fraction": plant_fraction, "cube_fraction": float(cube.mean()),
                     "foreground_fraction": float(fg.mean()), "locator": locator, "cube_pose": pose,

@@ -45,6 +45,8 @@ class ColourModel:
     red_hue: tuple[int, int] = (6, 165)
     """Red fruit: hue at most the first or at least the second value (terracotta and soil, 8-15, are out)."""
     red_sat_strong: int = 120
+    red_value_strong: int = 90
+    """Strong red needs at least this brightness (dark maroon/purple walls and their noise are not fruit)."""
     red_sat_weak: int = 70
     white_sat: int = 50
     """Weak white (flowers): saturation at most this and value at least ``white_value``."""
@@ -52,13 +54,15 @@ class ColourModel:
 
 
 def plant_colour_masks(
-    rgb: np.ndarray, model: ColourModel = ColourModel()
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rgb: np.ndarray, model: ColourModel = ColourModel(), with_red: bool = False
+) -> tuple[np.ndarray, ...]:
     """Plant-colour masks of an RGB uint8 image ``[H, W, 3]`` -> ``(strong, weak, pale)``, bool ``[H, W]``.
 
     ``strong``: green tissue and red fruit; ``weak`` (includes ``strong``): paler or darker green and
     red; ``pale``: white/cream (flowers, unripe fruit), which the segmenter accepts only as small blobs
-    touching the plant.
+    touching the plant. Red fruit needs its strong colour over a 3x3 neighbourhood (isolated noise
+    pixels of dark red walls are not fruit). With ``with_red`` a fourth mask is returned: ``red_only``,
+    the weak pixels that are red and not green, which the segmenter grows only from strong red.
 
     Example:
         >>> import numpy as np
@@ -80,10 +84,14 @@ def plant_colour_masks(
     green_strong = (exgr > model.exgr_strong) & hue_green & (s >= model.min_sat_green) & bright
     green_weak = (exgr > model.exgr_weak) & hue_green & (s >= model.min_sat_weak) & bright
     hue_red = (h <= model.red_hue[0]) | (h >= model.red_hue[1])
-    red_strong = hue_red & (s >= model.red_sat_strong) & (v >= 60)
+    red_strong = hue_red & (s >= model.red_sat_strong) & (v >= model.red_value_strong)
+    k3 = np.ones((3, 3), np.uint8)
+    red_strong = cv2.morphologyEx(red_strong.astype(np.uint8), cv2.MORPH_OPEN, k3).astype(bool)
     red_weak = hue_red & (s >= model.red_sat_weak) & bright
     white = (s <= model.white_sat) & (v >= model.white_value)
     strong = green_strong | red_strong
     weak = strong | green_weak | red_weak
     pale = white & ~weak
+    if with_red:
+        return strong, weak, pale, red_weak & ~green_weak & ~green_strong
     return strong, weak, pale

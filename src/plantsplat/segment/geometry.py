@@ -308,14 +308,14 @@ def poses_from_features(
     grays: list[np.ndarray],
     poses: list[np.ndarray | None],
     K: np.ndarray,
-    window: int = 2,
+    window: int = 4,
     min_inliers: int = 15,
     max_features: int = 2000,
 ) -> tuple[list[np.ndarray | None], list[bool]]:
     """Camera poses for frames without a cube pose, from SIFT matches with nearby posed frames.
 
-    For a frame ``j`` without a pose, the two nearest frames with a pose (within ``window`` frames)
-    are matched with SIFT (ratio test); the matches are triangulated with their known cameras, and
+    Frames are taken nearest-to-a-posed-frame first. For a frame ``j`` without a pose, the two
+    nearest frames with a pose (within ``window`` frames; frames located here count) are matched with SIFT (ratio test); the matches are triangulated with their known cameras, and
     ``j`` is located by RANSAC PnP on its matches to those 3D points. ``grays``: gray uint8 frames
     ``[h, w]``, ``K`` for that size. Returns the completed pose list and a flag per frame (True =
     pose found here). Poses are checked: enough inliers, sub-2-px refined error, and a camera centre
@@ -350,10 +350,11 @@ def poses_from_features(
 
     result = list(poses)
     found = [False] * n
-    posed = [i for i in range(n) if poses[i] is not None]
-    for j in range(n):
-        if poses[j] is not None:
-            continue
+    # frames nearest to posed ones first; frames located here serve as references for the rest
+    todo = sorted((j for j in range(n) if poses[j] is None),
+                  key=lambda j: min((abs(i - j) for i in range(n) if poses[i] is not None), default=n))
+    for j in todo:
+        posed = [i for i in range(n) if result[i] is not None]
         near = sorted((abs(i - j), i) for i in posed if 0 < abs(i - j) <= window)
         if len(near) < 2:
             continue
@@ -362,10 +363,10 @@ def poses_from_features(
         if len(mab) < min_inliers:
             continue
         pa, pb = features(a)[0][mab[:, 0]], features(b)[0][mab[:, 1]]
-        X = cv2.triangulatePoints(P(poses[a]), P(poses[b]), pa.T, pb.T)
+        X = cv2.triangulatePoints(P(result[a]), P(result[b]), pa.T, pb.T)
         X = (X[:3] / X[3:]).T  # [M, 3]
         ok = np.ones(len(X), bool)
-        for T, p in ((poses[a], pa), (poses[b], pb)):
+        for T, p in ((result[a], pa), (result[b], pb)):
             uv, z = project(X, T, K)
             ok &= (z > 0) & (np.linalg.norm(uv - p, axis=1) < 2.0)
         point_of_a = {int(k): X[m] for m, k in enumerate(mab[:, 0]) if ok[m]}
@@ -392,9 +393,175 @@ def poses_from_features(
         T[:3, :3] = cv2.Rodrigues(rvec)[0]
         T[:3, 3] = np.asarray(tvec).ravel()
         c = np.linalg.inv(T)[:3, 3]
-        ca, cb = np.linalg.inv(poses[a])[:3, 3], np.linalg.inv(poses[b])[:3, 3]
+        ca, cb = np.linalg.inv(result[a])[:3, 3], np.linalg.inv(result[b])[:3, 3]
         step = np.linalg.norm(ca - cb) / abs(a - b)  # camera travel per frame around here
         if err > 2.0 or np.linalg.norm(c - ca) > 1.2 * step * abs(a - j) + 1.0:
             continue
         result[j], found[j] = T, True
     return result, found
+
+
+def fill_orbit_poses(
+    poses: list[np.ndarray | None], centre: np.ndarray, max_extrapolate: int = 12
+) -> tuple[list[np.ndarray | None], list[bool]]:
+    """A camera pose for every frame of an orbit: gaps interpolated along the orbit, ends extrapolated.
+
+    The capture is a smooth orbit around the vertical (z) axis through ``centre`` and frames come in
+    video order. A missing camera between two posed frames ``a < j < b`` gets its centre interpolated
+    in cylindrical coordinates about that axis (angle unwrapped, radius and height linear: the camera
+    stays on the orbit instead of cutting the chord) and its orientation by slerp. Frames before the
+    first / after the last posed frame (at most ``max_extrapolate`` away) are the nearest posed camera
+    turned about the axis by the angle the camera travels per frame there. ``poses``: ``T_cam_world
+    [4, 4]`` or None. Returns ``(poses, filled)`` (True = pose made here).
+
+    Example:
+        >>> full, filled = fill_orbit_poses([T0, None, None, T3], centre)   # T1, T2 on the orbit
+    """
+    from scipy.spatial.transform import Rotation, Slerp
+
+    n = len(poses)
+    out = list(poses)
+    filled = [False] * n
+    have = [i for i in range(n) if poses[i] is not None]
+    if len(have) < 2:
+        return out, filled
+    c2w = {i: np.linalg.inv(poses[i]) for i in have}  # camera-to-world [4, 4]
+
+    def cyl(p):  # camera centre -> (angle, radius, height) about the vertical axis through centre
+        d = p[:2] - centre[:2]
+        return np.arctan2(d[1], d[0]), np.hypot(d[0], d[1]), p[2]
+
+    def from_cyl(a, r, z):
+        return np.array([centre[0] + r * np.cos(a), centre[1] + r * np.sin(a), z])
+
+    def rot_z(angle):
+        c, s = np.cos(angle), np.sin(angle)
+        return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+    for a, b in zip(have[:-1], have[1:]):
+        if b - a < 2:
+            continue
+        ta, ra, za = cyl(c2w[a][:3, 3])
+        tb, rb, zb = cyl(c2w[b][:3, 3])
+        dt = (tb - ta + np.pi) % (2 * np.pi) - np.pi  # shortest turn, [-pi, pi)
+        slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([c2w[a][:3, :3], c2w[b][:3, :3]])))
+        for j in range(a + 1, b):
+            t = (j - a) / (b - a)
+            M = np.eye(4)
+            M[:3, :3] = slerp([t]).as_matrix()[0]
+            M[:3, 3] = from_cyl(ta + t * dt, ra + t * (rb - ra), za + t * (zb - za))
+            out[j], filled[j] = np.linalg.inv(M), True
+
+    def rate(i0, i1):  # mean turn per frame (rad) between two posed frames
+        t0, t1 = cyl(c2w[i0][:3, 3])[0], cyl(c2w[i1][:3, 3])[0]
+        return ((t1 - t0 + np.pi) % (2 * np.pi) - np.pi) / (i1 - i0)
+
+    span = have[: min(len(have), 6)]
+    w0 = rate(span[0], span[-1])
+    span = have[-min(len(have), 6):]
+    w1 = rate(span[0], span[-1])
+    for j in range(n):
+        if out[j] is not None:
+            continue
+        ref, w = (have[0], w0) if j < have[0] else (have[-1], w1)
+        if abs(j - ref) > max_extrapolate:
+            continue
+        R = rot_z(w * (j - ref))
+        M = np.eye(4)
+        M[:3, :3] = R @ c2w[ref][:3, :3]
+        M[:3, 3] = R @ (c2w[ref][:3, 3] - centre) + centre
+        out[j], filled[j] = np.linalg.inv(M), True
+    return out, filled
+
+
+def find_pot(
+    occ: np.ndarray, origin: np.ndarray, vs: float, min_radius: float = 3.0, min_fill: float = 0.8,
+    max_base: float = 4.0, min_height: float = 4.0
+) -> dict[str, Any] | None:
+    """A plant-coloured pot in a carved grid: the solid, disc-sectioned block standing on the ground.
+
+    ``occ``: bool ``[X, Y, Z]`` voxels (cube frame, cm, z up, ground at z = 0), ``origin`` the centre of
+    voxel ``(0, 0, 0)``, ``vs`` the voxel size. Leaves and stems are thin: their horizontal sections are
+    sparse. A pot's sections are filled discs. Going up from the lowest occupied section (which must lie
+    within ``max_base`` cm of the ground), sections whose largest piece is a disc (equivalent radius at
+    least ``min_radius`` cm, at least ``min_fill`` of that disc occupied) are pot; the first section that
+    is not, or that is much narrower than the widest pot section below it (the crown), ends it. Returns ``{"axis": [x, y], "z": (bottom, rim), "r": (r_bottom, r_rim)}`` (a
+    frustum, cm) or None when there is no such block at least ``min_height`` cm high (pots that are not
+    plant-coloured leave no block: nothing to remove).
+
+    Example:
+        >>> pot = find_pot(occ, origin, 1.1)
+        >>> pot["z"][1]    # rim height, cm
+        12.1
+    """
+    from scipy import ndimage
+
+    X, Y, Z = occ.shape
+    zs = origin[2] + np.arange(Z) * vs
+    rows = []
+    for k in range(Z):
+        sl = occ[:, :, k]
+        if zs[k] <= -vs:  # below the ground: carving spill (shadows, table), not the pot
+            continue
+        if not sl.any():
+            if rows:
+                break
+            continue
+        if not rows and zs[k] - vs / 2 > max_base:
+            return None
+        lab, n = ndimage.label(sl)
+        sizes = ndimage.sum_labels(np.ones_like(lab), lab, index=np.arange(1, n + 1))
+        big = lab == 1 + int(np.argmax(sizes))
+        ij = np.argwhere(big).astype(np.float64)  # [P, 2]
+        c = ij.mean(axis=0)
+        r_eq = np.sqrt(len(ij) / np.pi)  # voxels
+        gi, gj = np.meshgrid(np.arange(X), np.arange(Y), indexing="ij")
+        disc = (gi - c[0]) ** 2 + (gj - c[1]) ** 2 <= r_eq**2
+        fill = float((big & disc).sum() / max(disc.sum(), 1))
+        if r_eq * vs < min_radius or fill < min_fill or (rows and r_eq * vs < 0.7 * max(r[3] for r in rows)):
+            break  # not a filled disc, or much narrower than the pot below: the plant's crown
+        rows.append((zs[k], origin[0] + c[0] * vs, origin[1] + c[1] * vs, r_eq * vs))
+    if not rows:
+        return None
+    a = np.array(rows)  # [S, 4] z, x, y, r
+    z0, z1 = a[0, 0] - vs / 2, a[-1, 0] + vs / 2
+    if z1 - z0 < min_height:
+        return None
+    if len(a) >= 3:
+        slope, icpt = np.polyfit(a[:, 0], a[:, 3], 1)
+        r0, r1 = slope * z0 + icpt, slope * z1 + icpt
+    else:
+        r0 = r1 = float(a[:, 3].mean())
+    # the pot stands on the ground; its frustum reaches a little below it (pose and carving errors)
+    return {"axis": [float(np.median(a[:, 1])), float(np.median(a[:, 2]))], "z": (float(min(z0, -1.5 * vs)), float(z1)),
+            "r": (float(max(r0, 0.5)), float(max(r1, 0.5)))}
+
+
+def pot_inside(points: np.ndarray, pot: dict[str, Any], margin: float = 0.0) -> np.ndarray:
+    """Which points ``[N, 3]`` lie in the pot frustum (grown by ``margin`` cm): bool ``[N]``."""
+    (z0, z1), (r0, r1) = pot["z"], pot["r"]
+    t = np.clip((points[:, 2] - z0) / max(z1 - z0, 1e-6), 0, 1)
+    r = r0 + t * (r1 - r0) + margin
+    d = np.hypot(points[:, 0] - pot["axis"][0], points[:, 1] - pot["axis"][1])
+    return (d <= r) & (points[:, 2] >= z0 - margin) & (points[:, 2] <= z1 + margin)
+
+
+def pot_silhouette(pot: dict[str, Any], T_cam_world: np.ndarray, K: np.ndarray, size: tuple[int, int],
+                   segments: int = 72) -> np.ndarray:
+    """The pot frustum's silhouette in one frame (it is convex: hull of its projected rims). bool ``[H, W]``."""
+    import cv2
+
+    w, h = size
+    out = np.zeros((h, w), np.uint8)
+    ang = np.linspace(0, 2 * np.pi, segments, endpoint=False)
+    pts = []
+    for z, r in zip(pot["z"], pot["r"]):
+        pts.append(np.stack([pot["axis"][0] + r * np.cos(ang), pot["axis"][1] + r * np.sin(ang),
+                             np.full_like(ang, z)], 1))
+    P = np.concatenate(pts)  # [2S, 3]
+    uv, z = project(P, T_cam_world, K)
+    if np.any(z <= 1e-3):
+        return out.astype(bool)
+    hull = cv2.convexHull(uv.astype(np.float32))
+    cv2.fillConvexPoly(out, np.round(hull.reshape(-1, 2) * 16).astype(np.int32), 1, shift=4)
+    return out.astype(bool)
