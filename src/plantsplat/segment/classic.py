@@ -67,7 +67,7 @@ class ClassicSettings:
     """Plant pieces smaller than this fraction of the image are dropped as specks."""
     fill_holes: float = 1.5e-4
     """Holes smaller than this fraction of the image are filled."""
-    feature_size: int = 480
+    feature_size: int = 0
     """Longer side (px) of the gray frames used to locate frames without visible markers (SIFT + PnP); 0 = off."""
     cube_from_features: bool = True
     """Draw the cube also in frames located by features (not by their own markers)."""
@@ -187,6 +187,12 @@ class ClassicSegmenter:
         if centre is None:
             log.warning("segment: the camera does not circle a point; locating the plant in 2D")
             return
+        # poses that disagree with the orbit through their neighbours (one-marker flips) are dropped
+        bad = geo.orbit_outliers(ctx.poses, centre)
+        for j in bad:
+            ctx.poses[j] = None
+            ctx.pose_source[j] = "none"
+        ctx.info["frames_with_rejected_pose"] = len(bad)
         # every frame gets a camera: gaps interpolated along the orbit, ends extrapolated
         ctx.roi_poses, filled = geo.fill_orbit_poses(ctx.poses, centre)
         ctx.pose_source = ["orbit" if f else h for f, h in zip(filled, ctx.pose_source)]

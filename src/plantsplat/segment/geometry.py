@@ -565,3 +565,61 @@ def pot_silhouette(pot: dict[str, Any], T_cam_world: np.ndarray, K: np.ndarray, 
     hull = cv2.convexHull(uv.astype(np.float32))
     cv2.fillConvexPoly(out, np.round(hull.reshape(-1, 2) * 16).astype(np.int32), 1, shift=4)
     return out.astype(bool)
+
+
+def orbit_outliers(poses: list[np.ndarray | None], centre: np.ndarray, factor: float = 4.0,
+                   min_cm: float = 3.0, min_deg: float = 6.0, window: int = 6) -> list[int]:
+    """Frames whose pose disagrees with the orbit through their neighbours (e.g. a flipped one-marker pose).
+
+    Each posed frame is predicted from its nearest posed frame on either side (at most ``window``
+    frames away; at the ends, from the two nearest on one side) with :func:`fill_orbit_poses`. The
+    frame that differs most from its prediction, by more than ``factor`` times the median difference
+    (and at least ``min_cm`` cm / ``min_deg`` degrees, both grown with the distance to the
+    neighbours), is dropped, and the search repeats (at most a fifth of the frames). Returns the
+    dropped indices.
+
+    Example:
+        >>> bad = orbit_outliers(poses, centre)   # e.g. [58]
+    """
+    from scipy.spatial.transform import Rotation
+
+    poses = list(poses)
+    dropped: list[int] = []
+    n_posed = sum(p is not None for p in poses)
+    while len(dropped) < n_posed // 5:
+        have = [i for i in range(len(poses)) if poses[i] is not None]
+        rows = []
+        for k, i in enumerate(have):
+            left = [j for j in have[max(0, k - 2):k] if i - j <= window]
+            right = [j for j in have[k + 1:k + 3] if j - i <= window]
+            if left and right:
+                a, b = left[-1], right[0]
+            elif len(left) == 2:
+                a, b = left
+            elif len(right) == 2:
+                a, b = right
+            else:
+                continue
+            lo, hi = min(a, b, i), max(a, b, i)
+            sub: list[np.ndarray | None] = [None] * (hi - lo + 1)
+            sub[a - lo], sub[b - lo] = poses[a], poses[b]
+            pred = fill_orbit_poses(sub, centre, max_extrapolate=window)[0][i - lo]
+            if pred is None:
+                continue
+            ci, cp = np.linalg.inv(poses[i]), np.linalg.inv(pred)
+            d = float(np.linalg.norm(ci[:3, 3] - cp[:3, 3]))
+            ang = float(np.degrees(Rotation.from_matrix(ci[:3, :3].T @ cp[:3, :3]).magnitude()))
+            gap = max(abs(i - a), abs(i - b))
+            rows.append((i, d, ang, gap))
+        if len(rows) < 5:
+            break
+        r = np.array(rows)
+        md, ma = np.median(r[:, 1]), np.median(r[:, 2])
+        grow = 1.0 + (r[:, 3] - 1) / 2
+        excess = np.maximum(r[:, 1] / (max(factor * md, min_cm) * grow), r[:, 2] / (max(factor * ma, min_deg) * grow))
+        w = int(np.argmax(excess))
+        if excess[w] <= 1.0:
+            break
+        poses[int(r[w, 0])] = None
+        dropped.append(int(r[w, 0]))
+    return dropped
