@@ -55,11 +55,11 @@ class ClassicSettings:
     """Voxels along each horizontal side of the visual-hull grid."""
     hull_keep_fraction: float = 0.9
     """A voxel is plant when it falls on plant colour in at least this fraction of the views seeing it."""
-    roi_margin_cm: float = 1.5
+    roi_margin_cm: float = 0.75
     """Margin (cm) around the projected plant hull inside which plant-coloured pixels are accepted."""
     join_gap_cm: float = 3.0
     """Hull pieces within this distance (cm) of the plant belong to it (separated leaves, fruit)."""
-    weak_band: float = 0.006
+    weak_band: float = 0.003
     """Weak plant colours are accepted only this far (fraction of the longer image side) from strong ones."""
     pale_max_area: float = 0.004
     """Largest weak/pale blob touching the plant accepted whole (unripe fruit, flower), as a fraction of the image."""

@@ -571,8 +571,8 @@ def orbit_outliers(poses: list[np.ndarray | None], centre: np.ndarray, factor: f
                    min_cm: float = 3.0, min_deg: float = 6.0, window: int = 6) -> list[int]:
     """Frames whose pose disagrees with the orbit through their neighbours (e.g. a flipped one-marker pose).
 
-    Each posed frame is predicted from its nearest posed frame on either side (at most ``window``
-    frames away; at the ends, from the two nearest on one side) with :func:`fill_orbit_poses`. The
+    Each posed frame is predicted from its nearest posed frame on either side or from the two nearest
+    on one side, whichever pair is closer (at most ``window`` frames away) with :func:`fill_orbit_poses`. The
     frame that differs most from its prediction, by more than ``factor`` times the median difference
     (and at least ``min_cm`` cm / ``min_deg`` degrees, both grown with the distance to the
     neighbours), is dropped, and the search repeats (at most a fifth of the frames). Returns the
@@ -592,14 +592,11 @@ def orbit_outliers(poses: list[np.ndarray | None], centre: np.ndarray, factor: f
         for k, i in enumerate(have):
             left = [j for j in have[max(0, k - 2):k] if i - j <= window]
             right = [j for j in have[k + 1:k + 3] if j - i <= window]
-            if left and right:
-                a, b = left[-1], right[0]
-            elif len(left) == 2:
-                a, b = left
-            elif len(right) == 2:
-                a, b = right
-            else:
+            pairs = ([(left[-1], right[0])] if left and right else []) + ([tuple(left)] if len(left) == 2 else []) \
+                + ([tuple(right)] if len(right) == 2 else [])
+            if not pairs:
                 continue
+            a, b = min(pairs, key=lambda ab: max(abs(i - ab[0]), abs(i - ab[1])))  # the closest neighbours
             lo, hi = min(a, b, i), max(a, b, i)
             sub: list[np.ndarray | None] = [None] * (hi - lo + 1)
             sub[a - lo], sub[b - lo] = poses[a], poses[b]
