@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from plantsplat.errors import PlantsplatError, UsageError
-from plantsplat.io import read_image, read_json, write_image_atomic, write_json_atomic
+from plantsplat.io import atomic_path, read_image, read_json, write_image_atomic, write_json_atomic
 from plantsplat.log import get_logger, progress
 from plantsplat.workspace import Workspace
 
@@ -42,6 +42,18 @@ log = get_logger(__name__)
 
 SEGMENT_VERSION = 1
 PREVIEW_NAME = "masks_preview.png"
+
+
+_CACHE_BYTES = 768 * 2**20
+
+
+def _write_png(path: Path, img: np.ndarray) -> None:
+    """Write a gray or BGR(A) uint8 image as PNG atomically, with fast (level 1) compression."""
+    import cv2
+
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), img, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+            raise PlantsplatError(f"{path}: could not write image; check the disk space and permissions")
 
 
 def preview_path(ws: Workspace) -> Path:
@@ -125,6 +137,8 @@ def segment_workspace(
         >>> [e["name"] for e in info["excluded"]]
         []
     """
+    import cv2
+
     from plantsplat.segment.classic import ClassicSegmenter, ClassicSettings
 
     ws = ws if isinstance(ws, Workspace) else Workspace(ws)
@@ -159,9 +173,12 @@ def segment_workspace(
     parts: list[tuple[np.ndarray, np.ndarray]] = []  # packed (plant, cube) for SAM-2 prompts
     per_frame: list[dict[str, Any]] = []
     shape = None
+    cache: dict[int, np.ndarray] = {}  # frames kept in memory (BGR) for writing the RGBA images, within a budget
     for i, p in enumerate(progress(paths, "segment: classic masks")):
         rgb = read_image(p)
         shape = rgb.shape[:2]
+        if rgb.nbytes * (len(cache) + 1) <= _CACHE_BYTES:
+            cache[i] = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
         plant, cube, info = seg.mask_parts(i, rgb, ctx)
         masks.append(np.packbits(plant | cube, axis=None))
         if backend == "sam2":
@@ -207,9 +224,10 @@ def segment_workspace(
     for i, p in enumerate(progress(paths, "segment: writing masks and RGBA")):
         m = np.unpackbits(masks[i], count=H * W).reshape(H, W).astype(bool)
         m8 = m.astype(np.uint8) * 255
-        write_image_atomic(ws.masks_dir / names[i], m8)
-        rgb = read_image(p)
-        write_image_atomic(ws.rgba_dir / names[i], np.dstack([rgb, m8]))
+        _write_png(ws.masks_dir / names[i], m8)
+        bgr = cache[i] if i in cache else cv2.cvtColor(read_image(p), cv2.COLOR_RGB2BGR)
+        _write_png(ws.rgba_dir / names[i], cv2.merge([*cv2.split(bgr), m8]))  # BGRA [H, W, 4]
+        cache.pop(i, None)
     # stale outputs of an earlier, different set of frames
     keep = set(names)
     for d in (ws.masks_dir, ws.rgba_dir):

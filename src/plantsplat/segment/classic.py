@@ -135,8 +135,9 @@ class ClassicSegmenter:
 
                 raise PlantsplatError(f"{p}: size {w}x{h} differs from the other frames' {size[0]}x{size[1]}; re-run `plantsplat frames`")
             dets.append(detect_markers(rgb, s.cube) if s.use_cube else {})
-            strong, _, _ = plant_colour_masks(rgb, s.colour)
             sw, sh, _ = _small_size(w, h, s.analysis_size)
+            half = cv2.resize(rgb, (2 * sw, 2 * sh), interpolation=cv2.INTER_AREA)  # colours at twice the analysis size
+            strong, _, _ = plant_colour_masks(half, s.colour)
             small = cv2.resize(strong.astype(np.uint8) * 255, (sw, sh), interpolation=cv2.INTER_AREA) >= 48
             smalls.append(small)
             if s.feature_size:
