@@ -47,8 +47,12 @@ class RunOptions:
     """Segmenter: `classic` (offline, no model download) or `sam2` (needs --sam2-checkpoint)."""
     sam2_checkpoint: Path | None = None
     """SAM-2 checkpoint file for `--segment-backend sam2`."""
-    matcher: Literal["auto", "sequential", "exhaustive"] = "auto"
-    """COLMAP feature matching (`auto` lets the poses stage choose)."""
+    matcher: Literal["auto", "guided", "sequential", "exhaustive"] = "auto"
+    """COLMAP feature matching (`auto`: guided by video order and the cube's view directions)."""
+    import_colmap: Path | None = None
+    """Use your own COLMAP model (folder, .bin or .txt) instead of running SfM (still calibrated with the cube)."""
+    import_transforms: Path | None = None
+    """Use your own nerfstudio transforms.json instead of running SfM (still calibrated with the cube)."""
     mode: Literal["object", "full"] = "object"
     """Training mode: `object` (RGBA, the paper's method) or `full` (whole scene, the Splatfacto baseline)."""
     backend: Literal["auto", "cpu", "gsplat"] = "auto"
@@ -210,7 +214,10 @@ def _stage_segment(ws: Workspace, source: Path | None, opts: RunOptions) -> dict
 def _stage_poses(ws: Workspace, source: Path | None, opts: RunOptions) -> dict:
     from plantsplat.poses import PosesConfig, estimate_poses
 
-    return estimate_poses(ws, PosesConfig(matcher=opts.matcher))
+    return estimate_poses(
+        ws,
+        PosesConfig(matcher=opts.matcher, import_colmap=opts.import_colmap, import_transforms=opts.import_transforms),
+    )
 
 
 def _stage_train(ws: Workspace, source: Path | None, opts: RunOptions) -> dict:
@@ -265,7 +272,7 @@ def pipeline_stages(opts: RunOptions) -> list[Stage]:
     stages = [
         Stage("frames", _stage_frames, lambda w: [w.frames_json, w.images_dir], ("num_frames", "max_size")),
         Stage("segment", _stage_segment, lambda w: [w.masks_dir, w.segment_json], ("segment_backend", "sam2_checkpoint")),
-        Stage("poses", _stage_poses, lambda w: [w.sparse_dir, w.transforms_json, w.poses_json], ("matcher",)),
+        Stage("poses", _stage_poses, lambda w: [w.sparse_dir, w.transforms_json, w.poses_json], ("matcher", "import_colmap", "import_transforms")),
         Stage("train", _stage_train, lambda w: [w.train_dir, w.metrics_json], ("mode", "backend", "iterations", "seed")),
         Stage("export", _stage_export, lambda w: [w.splat_ply, w.points_ply]),
         Stage("traits", _stage_traits, lambda w: [w.traits_json, w.traits_csv]),
