@@ -106,6 +106,58 @@ def test_intrinsics_poses_and_cube_silhouette():
     assert np.linalg.norm(np.linalg.inv(poses2[5])[:3, 3] - np.linalg.inv(views[5])[:3, 3]) < 5.0
 
 
+def _centre(T):
+    return np.linalg.inv(T)[:3, 3]
+
+
+def test_orbit_poses_fill_gaps_and_reject_flips():
+    K = np.array([[700.0, 0, 269.5], [0, 700.0, 479.5], [0, 0, 1]])
+    views = _orbit_views(K, n=60)  # 6 degrees per frame, ring radius 60 cm
+    centre = np.array([0.0, 0.0, 15.0])
+    poses = list(views)
+    for j in (10, 11, 12, 13, 14, 15, 0, 1, 58, 59):  # a 6-frame gap and both ends missing
+        poses[j] = None
+    full, filled = geo.fill_orbit_poses(poses, centre)
+    assert [j for j, f in enumerate(filled) if f] == [0, 1, 10, 11, 12, 13, 14, 15, 58, 59]
+    # the cameras stay on the ring (the chord between frames 9 and 16 is up to 60 * (1 - cos 21 deg) = 4 cm
+    # inside it); only the height, which waves here (+-10 cm, 3 times per turn), is approximated
+    horiz = [np.linalg.norm(_centre(full[j])[:2] - _centre(views[j])[:2]) for j in (10, 12, 13, 15, 0, 1, 58, 59)]
+    assert max(horiz) < 0.5, horiz
+    chord = 0.5 * (_centre(views[9]) + _centre(views[16]))
+    assert np.linalg.norm(chord[:2] - _centre(views[12])[:2]) > 3.0  # what straight interpolation would give
+    rot = [np.linalg.norm(full[j][:3, :3] - views[j][:3, :3]) for j in (10, 12, 15, 0, 59)]
+    assert max(rot) < 0.35, rot
+    # a flipped (mirrored about the optical axis) pose among good ones is found
+    bad = list(views)
+    flip = np.diag([-1.0, -1.0, 1.0, 1.0])
+    bad[30] = flip @ views[30]
+    assert geo.orbit_outliers(bad, centre) == [30]
+    assert geo.orbit_outliers(list(views), centre) == []
+
+
+def test_find_pot_in_hull():
+    vs = 1.0
+    origin = np.array([-20.0, -20.0, -2.0])
+    X = Y = 41
+    Z = 40
+    i, j, k = np.meshgrid(np.arange(X), np.arange(Y), np.arange(Z), indexing="ij")
+    x, y, z = origin[0] + i * vs, origin[1] + j * vs, origin[2] + k * vs
+    r = np.hypot(x - 1.0, y + 2.0)
+    pot = (z >= 0) & (z <= 14) & (r <= 6 + 0.2 * z)  # frustum: radius 6 -> 8.8 cm, rim at 14 cm
+    leaves = (z > 14) & (z < 30) & ((np.abs(x - y) < 1.0) | (np.abs(x + y) < 1.0)) & (r < 18)  # thin blades
+    occ = pot | leaves
+    found = geo.find_pot(occ, origin, vs)
+    assert found is not None
+    assert abs(found["z"][1] - 14.5) <= 1.0 and found["z"][0] <= 0
+    assert np.hypot(found["axis"][0] - 1.0, found["axis"][1] + 2.0) < 0.5
+    assert abs(found["r"][0] - 6.0) < 1.0 and abs(found["r"][1] - 8.8) < 1.0
+    pts = np.stack([x[occ], y[occ], z[occ]], 1)
+    inside = geo.pot_inside(pts, found, margin=0.5)
+    assert inside[pot[occ]].mean() > 0.97 and inside[leaves[occ]].mean() < 0.05
+    # no pot-coloured pot: leaves only (thin) -> nothing found
+    assert geo.find_pot(leaves, origin, vs) is None
+
+
 # ------------------------------------------------------------------ synthetic capture vs ground truth
 def _score(cap: Path, ws: Workspace, frames_info: dict) -> np.ndarray:
     out = []
