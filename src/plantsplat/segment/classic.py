@@ -4,14 +4,23 @@ Per capture (all frames at once):
 
 1. **Markers and cameras.** ArUco markers are detected in every frame; the intrinsics are estimated
    from the cube's known 3D marker corners (:func:`geometry.estimate_intrinsics`) and each frame's
-   camera pose in the cube frame is solved (short gaps interpolated).
+   camera pose in the cube frame is solved. Poses that disagree with the orbit through their
+   neighbours (flipped one-marker poses) are dropped, and every frame without a pose gets one on the
+   orbit (:func:`geometry.fill_orbit_poses`: angle, radius and height about the orbit's vertical axis
+   interpolated between the nearest posed frames in video order, orientation by slerp; the ends
+   extrapolated). So the cube is drawn, and the plant located in 3D, in every frame.
 2. **Where the plant is.** The camera circles the plant, so the point closest to every optical axis
    (the orbit centre) lies in the plant. A coarse visual hull is carved from the frames' strong
    plant-colour masks; its 3D connected component on the vertical axis through the orbit centre
    (plus pieces within a couple of centimetres) is the plant. Green objects elsewhere in the room
    (decoys, posters, other plants) are other components and are dropped in 3D, whatever their colour.
+   A plant-coloured pot shows up in the hull as a solid block on the ground whose horizontal sections
+   are filled discs (leaves are thin): :func:`geometry.find_pot` fits a frustum to it; its voxels
+   leave the plant hull, its silhouette leaves the plant region wherever no plant voxel lies in front
+   of it, and it hides the cube where the cube stands behind it.
 3. **Per frame.** The plant's hull is projected (with a margin) as the region of interest. Inside it,
-   plant colours are taken with hysteresis (strong seeds grow into weak pixels), small pale blobs
+   plant colours are taken with hysteresis (strong seeds grow into weak pixels; weak red only from
+   strong red fruit, so dark red walls next to leaves are not grown into), small pale blobs
    touching the plant (flowers) are added, specks are removed and pinholes filled. The cube is added
    as its exact projected silhouette (all six faces, also where no marker is visible).
 
