@@ -203,6 +203,7 @@ class ClassicSegmenter:
             ctx.poses[j] = None
             ctx.pose_source[j] = "none"
         ctx.info["frames_with_rejected_pose"] = len(bad)
+        ctx.info["frames_with_cube_pose"] = n_pose - len(bad)
         # every frame gets a camera: gaps interpolated along the orbit, ends extrapolated
         ctx.roi_poses, filled = geo.fill_orbit_poses(ctx.poses, centre)
         ctx.pose_source = ["orbit" if f else h for f, h in zip(filled, ctx.pose_source)]
