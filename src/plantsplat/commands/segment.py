@@ -30,6 +30,8 @@ class SegmentConfig:
     """Torch device for SAM-2 (default: cuda when available, else cpu)."""
     no_cube: bool = False
     """Ignore the marker cube (no cube silhouette, 2D plant locator): for captures without a cube."""
+    keep_pot: bool = False
+    """Keep a plant-coloured (green/red) pot in the masks; by default it is found in 3D (a solid block on the ground) and left out."""
     max_excluded: float = 0.5
     """Fail (writing nothing) when more than this fraction of frames has no plant."""
     force: bool = False
@@ -47,7 +49,7 @@ def run(cfg: SegmentConfig) -> int:
         force=cfg.force,
         sam2_checkpoint=cfg.sam2_checkpoint,
         sam2_config=cfg.sam2_config,
-        settings=ClassicSettings(use_cube=not cfg.no_cube),
+        settings=ClassicSettings(use_cube=not cfg.no_cube, remove_pot=not cfg.keep_pot),
         max_excluded=cfg.max_excluded,
         device=cfg.device,
     )
