@@ -348,7 +348,10 @@ class ClassicSegmenter:
         roi = cv2.resize(roi_small.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
         if ctx.pot is not None and locator != "2d":
             roi &= ~self._pot_mask(i, ctx, W, H)
-        seeds = strong & roi
+        # seeds: strong colour over a k x k neighbourhood (k = 2 px at 480, 3 px at 960): noisy pixels of green
+        # walls seed nothing
+        k = max(2, int(round(max(H, W) / 320)))
+        seeds = cv2.morphologyEx(strong.astype(np.uint8), cv2.MORPH_OPEN, np.ones((k, k), np.uint8)).astype(bool) & roi
         band = cv2.dilate(seeds.astype(np.uint8), _disk(s.weak_band * max(H, W))).astype(bool)
         # hysteresis: weak components that contain a strong pixel; red ones only from strong red (fruit),
         # so that dark red/purple walls next to leaves are not grown into

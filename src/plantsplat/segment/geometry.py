@@ -475,7 +475,7 @@ def fill_orbit_poses(
 
 
 def find_pot(
-    occ: np.ndarray, origin: np.ndarray, vs: float, min_radius: float = 3.0, min_fill: float = 0.8,
+    occ: np.ndarray, origin: np.ndarray, vs: float, min_radius: float = 3.0, min_fill: float = 0.7,
     max_base: float = 4.0, min_height: float = 4.0
 ) -> dict[str, Any] | None:
     """A plant-coloured pot in a carved grid: the solid, disc-sectioned block standing on the ground.
