@@ -397,19 +397,23 @@ def measure_traits(
     if below:
         notes.append(f"{len(below)} cluster(s) below the ground plane left out")
         clusters_info["below_ground"] = below
+    if calibrated and cube_fit is None:
+        # no cube cluster was recognised (a reconstruction too rough for the box test, or the cube fused
+        # with the plant), but the ArUco calibration puts the cube exactly at the frame's origin, edges
+        # along x and y: its points are left out before the plant is chosen
+        h = size / 2 + 0.5
+        in_cube = (np.abs(pts_cm[:, 0]) < h) & (np.abs(pts_cm[:, 1]) < h) & (pts_cm[:, 2] > -0.5) & (pts_cm[:, 2] < size + 0.5)
+        if in_cube.any():
+            labels = labels.copy()
+            labels[in_cube] = -1
+            notes.append(f"{int(in_cube.sum())} points inside the ArUco cube's known box were left out")
+            clusters_info["points_in_aruco_cube_box"] = int(in_cube.sum())
     sel = select_plant(pts_cm, labels, exclude=excl, merge_distance=s.merge_distance_cm,
                        min_cluster_fraction=s.min_cluster_fraction, min_cluster_points=s.min_points)
     if sel is None:
         return _failed("no plant cluster found in the cloud (only the cube or noise): check the masks and export",
                        s, scale=scale, cube=cube_json, clusters=clusters_info)
     plant_mask = sel.mask
-    if calibrated and cube_fit is None:
-        # the cube may be part of the plant's cluster: its ArUco position is known (on the origin)
-        r = np.hypot(pts_cm[:, 0], pts_cm[:, 1])
-        in_cube = plant_mask & (r < size * np.sqrt(0.5) + 0.5) & (pts_cm[:, 2] < size + 0.5) & (pts_cm[:, 2] > -0.5)
-        if in_cube.sum() > 0.02 * plant_mask.sum():
-            plant_mask = plant_mask & ~in_cube
-            reasons.append(f"{int(in_cube.sum())} points at the ArUco cube position were removed from the plant")
     reasons.extend(sel.reasons)
     clusters_info.update({"plant_clusters": sel.clusters, "plant_main_fraction": sel.main_fraction,
                           "excluded": sel.excluded[:20], "plant_points": int(plant_mask.sum())})
