@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -33,16 +32,8 @@ sys.path.insert(0, str(ROOT / "src"))
 
 
 def machine_info() -> dict:
-    import numpy
+    from plantsplat.resources import machine_info as common
 
-    cpu = ""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
     from plantsplat.report.browser import find_chromium
 
     exe = find_chromium()
@@ -60,8 +51,7 @@ def machine_info() -> dict:
         pw = None
     vendored = (ROOT / "src/plantsplat/report/assets/VENDORED.md").read_text().splitlines()
     libs = [ln.strip("| ").split(" | ")[:2] for ln in vendored if ln.startswith("| ") and "---" not in ln][1:]
-    return {"cpu": cpu or platform.processor(), "cores": os.cpu_count(), "python": platform.python_version(),
-            "numpy": numpy.__version__, "chromium": chromium, "playwright": pw,
+    return {**common(), "chromium": chromium, "playwright": pw,
             "viewer_libraries": {a: b for a, b in libs}, "webgl": "SwiftShader (CPU)"}
 
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import resource
 import sys
 import tempfile
@@ -30,24 +29,16 @@ def machine_info() -> dict:
     import av
     import cv2
     import moderngl
-    import numpy
 
-    cpu = ""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    from plantsplat.resources import machine_info as common
+
     try:
         ctx = moderngl.create_standalone_context(backend="egl")
         gl = ctx.info["GL_RENDERER"]
         ctx.release()
     except Exception as exc:  # noqa: BLE001 - informational
         gl = f"unavailable: {exc}"
-    return {"cpu": cpu or platform.processor(), "cores": os.cpu_count(), "python": platform.python_version(),
-            "numpy": numpy.__version__, "opencv": cv2.__version__, "av": av.__version__,
+    return {**common(), "opencv": cv2.__version__, "av": av.__version__,
             "moderngl": moderngl.__version__, "gl_renderer": gl, "LP_NUM_THREADS": os.environ.get("LP_NUM_THREADS")}
 
 

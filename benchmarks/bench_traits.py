@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import tempfile
 import time
@@ -40,27 +39,11 @@ TRAITS = ("height_cm", "width1_cm", "width2_cm", "canopy_volume_cm3", "canopy_ar
 
 
 def machine_info() -> dict:
-    import numpy
-    import open3d
     import scipy
 
-    cpu = ""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {
-        "cpu": cpu or platform.processor(),
-        "cores": os.cpu_count(),
-        "loadavg_start": os.getloadavg(),
-        "python": platform.python_version(),
-        "numpy": numpy.__version__,
-        "scipy": scipy.__version__,
-        "open3d": open3d.__version__,
-    }
+    from plantsplat.resources import machine_info as common
+
+    return {**common(), "loadavg_start": os.getloadavg(), "scipy": scipy.__version__}
 
 
 def synth_scene(seed: int, work: Path) -> tuple[dict, dict]:
