@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 from plantsplat.traitdefs import TRAIT_KEYS
 
 UNITS = {
@@ -61,7 +64,7 @@ def print_summary(summary: dict, comparison: dict | None = None) -> None:
         if traits.get("scale_source"):
             console.print(f"scale source: {traits['scale_source']}")
     metrics = summary.get("metrics") or {}
-    flat = {k: v for k, v in _flatten(metrics).items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+    flat = {k: v for k, v in flatten(metrics).items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
     if flat:
         m = Table(title="Image metrics (test views)")
         m.add_column("metric")
@@ -82,12 +85,18 @@ def print_summary(summary: dict, comparison: dict | None = None) -> None:
         console.print(f"  {name:14s} {path}")
 
 
-def _flatten(d: dict, prefix: str = "") -> dict:
-    out = {}
+def flatten(d: Mapping[str, Any], sep: str = ".", prefix: str = "") -> dict[str, Any]:
+    """Nested mappings flattened to one level, keys joined with ``sep``.
+
+    Example:
+        >>> flatten({"name": "a", "composite": {"psnr": 30.0}})
+        {'name': 'a', 'composite.psnr': 30.0}
+    """
+    out: dict[str, Any] = {}
     for k, v in d.items():
         key = f"{prefix}{k}"
-        if isinstance(v, dict):
-            out.update(_flatten(v, key + "."))
+        if isinstance(v, Mapping):
+            out.update(flatten(v, sep, key + sep))
         else:
             out[key] = v
     return out

@@ -116,14 +116,9 @@ def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
         >>> flatten({"name": "a", "composite": {"psnr": 30.0}})
         {'name': 'a', 'composite psnr': 30.0}
     """
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, Mapping):
-            out.update(flatten(v, key + " "))
-        else:
-            out[key] = v
-    return out
+    from plantsplat.summary import flatten as flatten_keys
+
+    return flatten_keys(d, " ", prefix)
 
 
 def img_tag(data: bytes, mime: str = "image/png", alt: str = "", cls: str = "", width: int | None = None) -> str:
