@@ -71,6 +71,16 @@ def test_loss_goes_down_and_metrics_written(trained):
     assert m["composite"]["psnr"] > 17.0
     assert m["render_fps"] > 0 and m["n_gaussians"] == summary["n_gaussians"]
     assert m["lpips_weights"] is None or 0.0 < m["composite"]["lpips"] < 1.0
+    # test-view renders saved for the report, each next to its ground truth, same size
+    from plantsplat.io import read_image
+
+    renders = sorted((ws.train_dir / "renders").glob("*_render.png"))
+    test = read_json(ws.train_dir / "split.json")["test"]
+    assert 1 <= len(renders) <= min(8, len(test))
+    for r in renders:
+        stem = r.name[: -len("_render.png")]
+        assert f"{stem}.png" in test
+        assert read_image(r).shape == read_image(r.with_name(f"{stem}_gt.png")).shape
 
 
 def test_background_gaussians_vanish(trained):

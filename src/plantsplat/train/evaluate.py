@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from plantsplat.errors import PlantsplatError
-from plantsplat.io import write_json_atomic
+from plantsplat.io import write_image_atomic, write_json_atomic
 from plantsplat.log import get_logger, progress
 from plantsplat.train import data as D
 from plantsplat.train.metrics import load_lpips, lpips, psnr, ssim
@@ -75,6 +75,10 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
     per_view = []
     render_seconds = 0.0
     n_px = 0
+    # a few test views, evenly spaced, are saved next to their ground truth for the report
+    renders_dir = Path(train_dir or ws.train_dir) / "renders"
+    n_saved = min(8, len(names))
+    saved = {names[int(round(i * (len(names) - 1) / max(1, n_saved - 1)))] for i in range(n_saved)}
     with torch.no_grad():
         for name in progress(names, "evaluating test views"):
             img, alpha, K, w, h = cache.get(name, 1)
@@ -95,6 +99,10 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
             else:
                 gt_fg = None
             gt = gt_fg if (object_mode and gt_fg is not None) else img
+            if name in saved:
+                stem = Path(name).stem
+                write_image_atomic(renders_dir / f"{stem}_render.png", _to_u8(pred))
+                write_image_atomic(renders_dir / f"{stem}_gt.png", _to_u8(gt))
             row["composite"] = {"psnr": float(psnr(pred, gt)), "ssim": float(ssim(pred, gt)),
                                 "lpips": lpips(net, pred, gt)}
             if alpha is not None and float(alpha.sum()) > 0:
@@ -148,6 +156,11 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
              c["psnr"], c["ssim"], _fmt(c["lpips"]), _fmt(f.get("psnr")), _fmt(f.get("ssim")),
              metrics["render_fps"] or 0, metrics_path)
     return metrics
+
+
+def _to_u8(img: torch.Tensor):
+    """[h, w, 3] float in [0, 1] -> uint8 numpy."""
+    return (img.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
 
 
 def _fmt(x):
