@@ -168,27 +168,41 @@ def select_plant(
     if not ids:
         return None
     sizes = {i: int((labels == i).sum()) for i in ids}
-    main = max(ids, key=lambda i: sizes[i])
-    min_size = max(min_cluster_points, int(np.ceil(min_cluster_fraction * sizes[main])))
-    chosen = [main]
-    tree = cKDTree(pts[labels == main])
-    pending = [i for i in ids if i != main]
+    largest = max(ids, key=lambda i: sizes[i])
+    min_size = max(min_cluster_points, int(np.ceil(min_cluster_fraction * sizes[largest])))
     excluded: list[dict] = []
-    for i in list(pending):
+    pieces = []
+    for i in ids:
         if sizes[i] < min_size:
             excluded.append({"label": i, "points": sizes[i], "reason": "floater (too small)"})
-            pending.remove(i)
-    changed = True
-    while changed and pending:
-        changed = False
-        for i in list(pending):
-            d, _ = tree.query(pts[labels == i], k=1, distance_upper_bound=merge_distance)
+        else:
+            pieces.append(i)
+    # group the pieces by single linkage (a gap of at most merge_distance joins two pieces); the plant
+    # is the group with the most points: a fragmented plant outweighs one large piece of something else
+    trees = {i: cKDTree(pts[labels == i]) for i in pieces}
+    group = {i: i for i in pieces}
+
+    def root(i):
+        while group[i] != i:
+            group[i] = group[group[i]]
+            i = group[i]
+        return i
+
+    for a_idx, a in enumerate(pieces):
+        for b in pieces[a_idx + 1:]:
+            if root(a) == root(b):
+                continue
+            small, big = (a, b) if sizes[a] <= sizes[b] else (b, a)
+            d, _ = trees[big].query(trees[small].data, k=1, distance_upper_bound=merge_distance)
             if np.isfinite(d).any():
-                chosen.append(i)
-                pending.remove(i)
-                changed = True
-        if changed:
-            tree = cKDTree(pts[np.isin(labels, chosen)])
+                group[root(a)] = root(b)
+    totals: dict[int, int] = {}
+    for i in pieces:
+        totals[root(i)] = totals.get(root(i), 0) + sizes[i]
+    best = max(totals, key=lambda r: (totals[r], r == root(largest)))
+    chosen = sorted((i for i in pieces if root(i) == best), key=lambda i: -sizes[i])
+    main = chosen[0]
+    pending = [i for i in pieces if root(i) != best]
     for i in pending:
         excluded.append({"label": i, "points": sizes[i], "reason": "far from the plant"})
     mask = np.isin(labels, chosen)
