@@ -35,22 +35,20 @@ from plantsplat.workspace import Workspace  # noqa: E402
 
 
 def synth_workspace(cap: Path, dst: Path) -> Workspace:
-    """Workspace from a synth capture with ground-truth poses (OpenCV pixel centres -> +0.5 for 3DGS)."""
+    """Workspace from a synth capture with its ground-truth poses."""
+    from plantsplat.synth.groundtruth import true_transforms
+
     gt = read_json(cap / "ground_truth.json")
     ws = Workspace(dst)
     ws.images_dir.mkdir(parents=True)
     ws.masks_dir.mkdir(parents=True)
-    intr = gt["intrinsics"]
-    flip = np.diag([1.0, -1.0, -1.0, 1.0])
-    frames = []
-    for fr in gt["frames"]:
+    kept = []
+    for index, fr in enumerate(gt["frames"]):
         name = Path(fr["file"]).name
         shutil.copy(cap / fr["file"], ws.images_dir / name)
         shutil.copy(cap / fr["mask"], ws.masks_dir / name)
-        frames.append({"file_path": f"images/{name}", "transform_matrix": (np.asarray(fr["c2w"]) @ flip).tolist()})
-    write_json_atomic(ws.transforms_json, {"fl_x": intr["fx"], "fl_y": intr["fy"], "cx": intr["cx"] + 0.5,
-                                           "cy": intr["cy"] + 0.5, "w": intr["width"], "h": intr["height"],
-                                           "frames": frames})
+        kept.append((name, index))
+    write_json_atomic(ws.transforms_json, true_transforms(gt, kept))
     return ws
 
 

@@ -24,20 +24,10 @@ OPTS = dict(num_frames=36, max_size=480, iterations=300, report=False)
 
 def _true_cameras(cap: Path, ws: Path, dst: Path) -> Path:
     """nerfstudio transforms.json of the capture's true cameras, named as the frames stage named them."""
-    import numpy as np
+    from plantsplat.synth.groundtruth import true_transforms
 
-    gt = read_json(cap / "ground_truth.json")
-    intr = gt["intrinsics"]
-    flip = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV -> OpenGL camera axes
-    frames = [
-        {"file_path": f"images/{f['name']}",
-         "transform_matrix": (np.asarray(gt["frames"][f["source_index"]]["c2w"]) @ flip).tolist()}
-        for f in read_json(ws / "frames.json")["frames"]
-    ]
-    # synth puts pixel centres at integer coordinates; nerfstudio/COLMAP at +0.5
-    data = {"camera_model": "PINHOLE", "fl_x": intr["fx"], "fl_y": intr["fy"], "cx": intr["cx"] + 0.5,
-            "cy": intr["cy"] + 0.5, "w": intr["width"], "h": intr["height"], "frames": frames}
-    dst.write_text(json.dumps(data))
+    kept = [(f["name"], f["source_index"]) for f in read_json(ws / "frames.json")["frames"]]
+    dst.write_text(json.dumps(true_transforms(read_json(cap / "ground_truth.json"), kept)))
     return dst
 
 
@@ -93,7 +83,6 @@ def test_rerun_skips_finished_stages(finished_run, capsys):
                  "--import-transforms", imported])
     assert code == 0
     assert (ws / "traits.json").stat().st_mtime_ns == before  # nothing recomputed
-    out = capsys.readouterr().out + capsys.readouterr().err
     run = read_json(ws / "run.json")
     assert run["stages"]["train"]["seconds"] > 0  # the timing of the run that did the work is kept
 

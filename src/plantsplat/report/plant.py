@@ -71,8 +71,9 @@ class _Parts:
         return H.missing_note(what, hint)
 
 
-def _guard(parts: _Parts, label: str, fn) -> str:
-    """Run one section builder; an unreadable input becomes a visible note, not a failed report."""
+def _guard(parts: _Parts, label: str, fn):
+    """Run one section builder or reader; an unreadable input becomes a visible note (its HTML is
+    returned instead of the value), not a failed report."""
     try:
         return fn()
     except PlantsplatError as exc:
@@ -136,7 +137,7 @@ def _viewer_section(ws: Workspace, parts: _Parts, opts: ReportOptions) -> str:
     cfg: dict = {"background": BACKGROUND, "splat": False, "points": False}
     frame_pts = None
     if ws.splat_ply.is_file():
-        g = _guard_value(parts, "Gaussian splat", lambda: read_splat_ply(ws.splat_ply))
+        g = _guard(parts, "Gaussian splat", lambda: read_splat_ply(ws.splat_ply))
         if isinstance(g, str):
             notes.append(g)
         elif len(g) == 0:
@@ -153,7 +154,7 @@ def _viewer_section(ws: Workspace, parts: _Parts, opts: ReportOptions) -> str:
     else:
         notes.append(parts.miss("Gaussian splat (export/splat.ply)", _cmd("export", ws)))
     if ws.points_ply.is_file():
-        pc = _guard_value(parts, "point cloud", lambda: read_points_ply(ws.points_ply, opts.max_points))
+        pc = _guard(parts, "point cloud", lambda: read_points_ply(ws.points_ply, opts.max_points))
         if isinstance(pc, str):
             notes.append(pc)
         elif len(pc.positions) == 0:
@@ -190,15 +191,6 @@ def _viewer_section(ws: Workspace, parts: _Parts, opts: ReportOptions) -> str:
         + H.inline_script(H.asset_text("viewer-lib.js"))
         + H.inline_script(H.asset_text("viewer-app.js"))
     )
-
-
-def _guard_value(parts: _Parts, label: str, fn):
-    try:
-        return fn()
-    except PlantsplatError as exc:
-        log.warning("report: %s: %s", label, exc)
-        parts.missing.append((f"{label} (unreadable)", str(exc)))
-        return H.error_note(str(exc))
 
 
 def _renders_section(ws: Workspace, parts: _Parts, opts: ReportOptions) -> str:

@@ -158,3 +158,31 @@ def project(K: np.ndarray, c2w: np.ndarray, X: np.ndarray) -> np.ndarray:
     Xc = X @ w2c[:3, :3].T + w2c[:3, 3]
     uv = Xc @ K.T
     return uv[:, :2] / uv[:, 2:3]
+
+
+def true_transforms(ground_truth: dict, frames: list[tuple[str, int]]) -> dict:
+    """The capture's true cameras as a nerfstudio ``transforms.json`` dict.
+
+    ``frames`` pairs an image name (written as ``images/<name>``) with the video frame index it shows.
+    Poses become OpenGL camera axes; the principal point moves by +0.5 px, from synth's convention
+    (pixel centres at integer coordinates) to nerfstudio's and COLMAP's.
+
+    Example:
+        >>> gt = {"intrinsics": {"fx": 500.0, "fy": 500.0, "cx": 269.5, "cy": 479.5, "width": 540, "height": 960},
+        ...       "frames": [{"c2w": np.eye(4).tolist()}]}
+        >>> t = true_transforms(gt, [("frame_00000.png", 0)])
+        >>> t["cx"], t["frames"][0]["transform_matrix"][1][1]
+        (270.0, -1.0)
+    """
+    intr = ground_truth["intrinsics"]
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV -> OpenGL camera axes
+    return {
+        "camera_model": "PINHOLE",
+        "fl_x": intr["fx"], "fl_y": intr["fy"], "cx": intr["cx"] + 0.5, "cy": intr["cy"] + 0.5,
+        "w": intr["width"], "h": intr["height"],
+        "frames": [
+            {"file_path": f"images/{name}",
+             "transform_matrix": (np.asarray(ground_truth["frames"][index]["c2w"], dtype=np.float64) @ flip).tolist()}
+            for name, index in frames
+        ],
+    }
