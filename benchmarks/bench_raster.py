@@ -116,7 +116,6 @@ def synth_scene(n: int, width: int, height: int, per_px: float, seed: int = 0):
 
 
 def run_synth(name: str, reps: int, with_reference: bool) -> dict:
-    import numpy as np
     import torch
 
     from plantsplat.raster import rasterize
@@ -160,8 +159,7 @@ def run_synth(name: str, reps: int, with_reference: bool) -> dict:
     with torch.no_grad():
         m2, con, z, r = project_cpu(params[0], params[1], params[2], params[3], V, K, W, H)
         arrays, offsets, ids, tiles, tx = C._prepare(m2, con, params[4], params[3], z, r, W, H, 16)
-        _, alpha, _, _, last, ncon = C._render(arrays, offsets, ids, tiles, tx, W, H, 16, True, True)
-    contrib = int(ncon.astype(np.int64).sum())
+        _, alpha, _, _, last, contrib = C._render(arrays, offsets, ids, tiles, tx, W, H, 16, True, True)
     fb = _median(tf) + _median(tb)
     res = {
         "gaussians": n, "width": W, "height": H, "reps": reps,
