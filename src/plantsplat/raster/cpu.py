@@ -47,11 +47,9 @@ _FM = {"reassoc", "contract", "arcp", "nsz", "afn"}
 _NGRAD = 10  # per-intersection gradient: mean x, mean y, conic a, b, c, opacity, r, g, b, depth
 _LANES = 8  # pixel loops run over 8-column blocks (one AVX2 float32 vector); tile_size is a multiple
 _SIG_MAX = _F32(6.0)  # exp(-6) < 1/255: larger sigma can never give a visible alpha
-_LOG2E = _F32(1.4426950408889634)
-_LN2_HI = _F32(0.693145751953125)
-_LN2_LO = _F32(1.428606765330187e-06)
-_EIGHT = _F32(8.0)
-_FOUR = _F32(4.0)
+# exp(-x) ~ sum_k _EXP_C[k] x^k on [0, 0.75] (see _exp_neg)
+_EXP_C = (_ONE, _F32(-0.9999997019767761), _F32(0.4999932646751404), _F32(-0.1666114628314972),
+          _F32(0.04145379737019539), _F32(-0.007908405736088753), _F32(0.0009540405590087175))
 _TWO = _F32(2.0)
 _NEVER = _F32(2.0**30)  # larger than any tile-list position (float32-exact)
 
@@ -60,27 +58,23 @@ _NEVER = _F32(2.0**30)  # larger than any tile-list position (float32-exact)
 def _exp_neg(s):  # pragma: no cover - numba
     """exp(-s) for s clamped to [0, 6], in float32 arithmetic the compiler can vectorise.
 
-    libm's expf is a scalar call that stops the pixel loop from vectorising, so this is the usual
-    range reduction exp(-s) = 2^-n exp(n ln2 - s) with a degree-6 polynomial on [-0.35, 0.35] and
-    2^-n (n <= 9) from selects. Max relative error 2.5e-7 on [0, 6] (float32 expf: 2.0e-7).
+    libm's expf is a scalar call that stops the pixel loop from vectorising, so this is
+    exp(-s) = exp(-s/8)^8 with a degree-6 polynomial for exp(-x) on [0, 0.75] (least squares in
+    relative error on Chebyshev nodes, exact at 0) and three squarings: 10 vector operations and no
+    selects. Max relative error 1.5e-6 on [0, 6] (mostly float32 rounding doubled by each squaring),
+    far below what the 8-bit images or the gradients can resolve.
     """
-    s = min(max(s, _ZERO), _SIG_MAX)
-    n = np.float32(np.int32(s * _LOG2E + _HALF))  # round(s / ln2); int32 keeps it vectorisable
-    r = (n * _LN2_HI - s) + n * _LN2_LO
-    p = _F32(1.0 / 720.0)
-    p = p * r + _F32(1.0 / 120.0)
-    p = p * r + _F32(1.0 / 24.0)
-    p = p * r + _F32(1.0 / 6.0)
-    p = p * r + _HALF
-    p = p * r + _ONE
-    p = p * r + _ONE
-    p = p * (_F32(1.0 / 256.0) if n >= _EIGHT else _ONE)
-    n = n - (_EIGHT if n >= _EIGHT else _ZERO)
-    p = p * (_F32(1.0 / 16.0) if n >= _FOUR else _ONE)
-    n = n - (_FOUR if n >= _FOUR else _ZERO)
-    p = p * (_F32(0.25) if n >= _TWO else _ONE)
-    n = n - (_TWO if n >= _TWO else _ZERO)
-    return p * (_HALF if n >= _ONE else _ONE)
+    x = min(max(s, _ZERO), _SIG_MAX) * _F32(0.125)
+    p = _EXP_C[6]
+    p = p * x + _EXP_C[5]
+    p = p * x + _EXP_C[4]
+    p = p * x + _EXP_C[3]
+    p = p * x + _EXP_C[2]
+    p = p * x + _EXP_C[1]
+    p = p * x + _ONE
+    p = p * p
+    p = p * p
+    return p * p
 
 
 @njit(inline="always", cache=True)
