@@ -12,7 +12,8 @@ Cases (each run in its own subprocess so peak memory is per case):
 - ``plant448`` / ``plant896``: one training iteration as OpenSplat's CPU build measured it on the 18
   views of ``romi_virtual_plant_synthetic`` (RGBA composited over a flat grey), 20k Gaussians
   sampled on ``ground_truth/VirtualPlant.obj`` (open3d), SH degree 3, no densification,
-  loss 0.8 L1 + 0.2 (1 - SSIM), Adam step. OpenSplat: 0.062 s and 0.217 s per iteration,
+  loss 0.8 L1 + 0.2 (1 - SSIM) (SSIM by the fused numba kernels of ``plantsplat.raster.ssim``),
+  Adam step. OpenSplat: 0.062 s and 0.217 s per iteration,
   peak memory 0.4 and 1.0 GB.
 
 Usage::
@@ -198,27 +199,6 @@ def sample_plant_points(n: int, out: Path) -> None:
     np.save(out, pts)
 
 
-def _ssim(x, y):
-    """SSIM (11x11 Gaussian window, sigma 1.5) of [1, 3, H, W] images in [0, 1].
-
-    The Gaussian window is separable, so it is applied as an 11x1 and a 1x11 depthwise convolution
-    (identical result, 5.5x fewer operations), to the five maps at once.
-    """
-    import torch
-    import torch.nn.functional as F
-
-    g = torch.exp(-((torch.arange(11, dtype=x.dtype) - 5) ** 2) / (2 * 1.5**2))
-    g = g / g.sum()
-    maps = torch.cat([x, y, x * x, y * y, x * y], dim=1)  # [1, 15, H, W]
-    c = maps.shape[1]
-    blur = F.conv2d(maps, g.view(1, 1, 11, 1).expand(c, 1, 11, 1), padding=(5, 0), groups=c)
-    blur = F.conv2d(blur, g.view(1, 1, 1, 11).expand(c, 1, 1, 11), padding=(0, 5), groups=c)
-    mu_x, mu_y, xx, yy, xy = blur.split(3, dim=1)
-    sxx, syy, sxy = xx - mu_x**2, yy - mu_y**2, xy - mu_x * mu_y
-    c1, c2 = 0.01**2, 0.03**2
-    return (((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))).mean()
-
-
 def run_plant(name: str, points_file: Path, iters: int) -> dict:
     import cv2
     import numpy as np
@@ -227,6 +207,7 @@ def run_plant(name: str, points_file: Path, iters: int) -> dict:
 
     from plantsplat.io import read_image
     from plantsplat.raster import rasterize
+    from plantsplat.raster.ssim import ssim_cpu
 
     size = 448 if name == "plant448" else 896
     rss_base = _peak_gb()
@@ -267,12 +248,12 @@ def run_plant(name: str, points_file: Path, iters: int) -> dict:
         out = rasterize(means, quats, torch.exp(log_scales), torch.sigmoid(logit_op), sh, V, K, size, size,
                         sh_degree=3, backend="cpu")
         img = out.color + (1 - out.alpha) * bg
-        x, y = img.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None]
-        loss = 0.8 * (img - gt).abs().mean() + 0.2 * (1 - _ssim(x, y))
+        # SSIM with the numba kernels (same value and gradient as the PyTorch conv2d version)
+        loss = 0.8 * (img - gt).abs().mean() + 0.2 * (1 - ssim_cpu(img, gt))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        return float(loss)
+        return float(loss.detach())
 
     for i in range(2):
         step(i)
@@ -289,7 +270,7 @@ def run_plant(name: str, points_file: Path, iters: int) -> dict:
         "cpu_s_per_iter_mean": sum(cpu_times) / len(cpu_times),
         "opensplat_s_per_iter": ref_s, "speedup_vs_opensplat": ref_s / mean_s, "loss_first": losses[0],
         "loss_last": losses[-1], "peak_rss_gb": _peak_gb(), "rss_after_imports_gb": rss_base,
-        "opensplat_peak_gb": ref_gb,
+        "opensplat_peak_gb": ref_gb, "times": [round(t, 4) for t in times],
     }
 
 
@@ -319,6 +300,12 @@ def main() -> int:
     info = machine_info()
     results: dict = {"machine": info, "arithmetic_limit_pairs_per_s": arithmetic_limit(info), "cases": {}}
     cases = [c for c in args.cases.split(",") if c]
+    # PyTorch's and numba's OpenMP runtimes each spin-wait after a parallel region; with both in one
+    # process (torch ops between numba kernels) on 2 cores the spinning threads starve the working
+    # ones (measured: a 448 training iteration 0.9 s instead of 0.06 s on the shared machine).
+    child_env = {**os.environ, "PYTHONPATH": str(ROOT / "src"),
+                 "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}
+    results["machine"]["omp_wait_policy"] = child_env["OMP_WAIT_POLICY"]
     with tempfile.TemporaryDirectory() as tmp:
         points = Path(tmp) / "plant_points.npy"
         if any(c.startswith("plant") for c in cases):
@@ -331,7 +318,7 @@ def main() -> int:
             cmd = [sys.executable, __file__, "--child", case, "--reps", str(args.reps), "--iters", str(args.iters),
                    "--points", str(points)] + (["--no-reference"] if args.no_reference else [])
             print(f"[bench_raster] case {case} ...", flush=True)
-            proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT / "src")})
+            proc = subprocess.run(cmd, capture_output=True, text=True, env=child_env)
             line = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
             if proc.returncode or not line:
                 print(proc.stderr[-3000:])
