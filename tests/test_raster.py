@@ -186,6 +186,33 @@ def test_no_grad_path_matches_training_path():
     assert fast.means2d.grad is None and not fast.color.requires_grad
 
 
+def _dense(n, seed):
+    params = _scene(n, seed, edge_cases=False)
+    params[3] = torch.full((n,), 0.98)
+    params[2] = params[2] * 6
+    return params
+
+
+@pytest.mark.parametrize("make,width,height,tile", [
+    (lambda: _scene(150, 12), 50, 40, 16),  # behind the camera, off-screen, huge, degenerate, culled
+    (lambda: _dense(300, 13), 24, 20, 16),  # most pixels stop early
+    (lambda: _scene(80, 14), 45, 27, 8),
+    (lambda: _scene(30, 15), 1, 1, 16),  # a single pixel
+    (lambda: [torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 3)], 17, 9, 16),
+])
+def test_no_grad_render_kernel_matches_reference(make, width, height, tile):
+    """The render-only kernel (no backward bookkeeping) against the reference, edge cases included."""
+    params = make()
+    V, K = _camera(width, height)
+    with torch.no_grad():
+        fast = rasterize(*params, V, K, width, height, backend="cpu", tile_size=tile)
+        ref = rasterize(*params, V, K, width, height, backend="reference", tile_size=tile)
+    torch.testing.assert_close(fast.color, ref.color, atol=IMG_ATOL, rtol=0)
+    torch.testing.assert_close(fast.alpha, ref.alpha, atol=IMG_ATOL, rtol=0)
+    torch.testing.assert_close(fast.depth, ref.depth, atol=IMG_ATOL * 10, rtol=1e-5)
+    assert torch.equal(fast.radii, ref.radii)
+
+
 def test_expected_depth_convention():
     # one Gaussian at camera depth 2: ED equals 2 wherever alpha > 0, 0 elsewhere
     means = torch.tensor([[0.0, 0.0, 2.0]])
