@@ -86,6 +86,22 @@ class ClassicSettings:
     """Fewer frames with a cube pose than this: fall back to the 2D plant locator."""
     remove_pot: bool = True
     """Find a plant-coloured pot (a solid disc-sectioned block on the ground in the visual hull) and leave it out."""
+    fruit_keep_fraction: float = 0.5
+    """Keep fraction of the second hull carved from strong red alone (fruit partly hidden by the pot)."""
+    fruit_reach: float = 0.3
+    """Red hull pieces within this fraction of the orbit radius of the orbit axis are fruit of the plant."""
+    cube_occlusion: bool = True
+    """Compare each frame with the cube's printed faces as the camera should see them, and leave out of the cube what
+    hides it (the pot, a leaf, a hand)."""
+    learn_background: bool = True
+    """Learn the capture's background colours (around the plant's projected hull, and the pot) and reject plant-coloured
+    pixels of those colours inside the plant region (green objects seen through gaps between leaves, green pots)."""
+    background_ring: float = 0.05
+    """Width of the band around the plant region whose colours are background, as a fraction of the longer image side."""
+    thin_px: float = 3.0
+    """Runs of background colour thinner than about twice this (px at 960) are kept (stems, peduncles)."""
+    background_ratio: float = 1.0
+    """A colour is background when it is seen this many times more often around the plant (or on the pot) than inside it."""
 
 
 @dataclass
@@ -104,6 +120,19 @@ class CaptureContext:
     voxel: float = 0.0
     centre: np.ndarray | None = None
     info: dict[str, Any] = field(default_factory=dict)
+
+
+_YSHIFT, _CSHIFT = 4, 2  # colour bins: 16 luma x 64 x 64 chroma levels (YCrCb)
+_NBINS = (256 >> _YSHIFT) * (256 >> _CSHIFT) ** 2
+
+
+def _colour_bins(rgb: np.ndarray) -> np.ndarray:
+    """Colour-histogram bin of every pixel of an RGB uint8 image: int ``[H, W]`` in ``[0, _NBINS)``."""
+    import cv2
+
+    ycc = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2YCrCb)
+    nc = 256 >> _CSHIFT
+    return ((ycc[..., 0] >> _YSHIFT).astype(np.int32) * nc + (ycc[..., 1] >> _CSHIFT)) * nc + (ycc[..., 2] >> _CSHIFT)
 
 
 def _small_size(w: int, h: int, longest: int) -> tuple[int, int, float]:
@@ -132,6 +161,8 @@ class ClassicSegmenter:
         s = self.s
         dets: list[dict[int, np.ndarray]] = []
         smalls: list[np.ndarray] = []
+        small_rgb: list[np.ndarray] = []
+        red_smalls: list[np.ndarray] = []
         grays: list[np.ndarray] = []
         size = None
         for p in progress(image_paths, "segment: markers and colours"):
@@ -146,19 +177,26 @@ class ClassicSegmenter:
             dets.append(detect_markers(rgb, s.cube) if s.use_cube else {})
             sw, sh, _ = _small_size(w, h, s.analysis_size)
             half = cv2.resize(rgb, (2 * sw, 2 * sh), interpolation=cv2.INTER_AREA)  # colours at twice the analysis size
-            strong, _, _ = plant_colour_masks(half, s.colour)
+            strong, _, _, red = plant_colour_masks(half, s.colour, with_red=True)
+            red_smalls.append(cv2.resize((strong & red).astype(np.uint8) * 255, (sw, sh), interpolation=cv2.INTER_AREA) >= 64)
             small = cv2.resize(strong.astype(np.uint8) * 255, (sw, sh), interpolation=cv2.INTER_AREA) >= 48
             smalls.append(small)
+            small_rgb.append(cv2.resize(half, (sw, sh), interpolation=cv2.INTER_AREA))
             if s.feature_size:
                 fw, fh, _ = _small_size(w, h, s.feature_size)
                 grays.append(cv2.resize(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), (fw, fh), interpolation=cv2.INTER_AREA))
         assert size is not None
         ctx = CaptureContext(size=size, detections=dets)
         ctx.info["frames_with_markers"] = int(sum(1 for d in dets if d))
+        self._red_smalls = red_smalls
         if s.use_cube:
             self._geometry(ctx, smalls, grays)
         ctx.info["plant_locator"] = "3d" if ctx.hull_points is not None else "2d"
         self._smalls = smalls
+        self._small_rgb = small_rgb
+        self._background = None
+        if ctx.hull_points is not None and s.learn_background:
+            self._learn_background(ctx)
         return ctx
 
     def _geometry(self, ctx: CaptureContext, smalls: list[np.ndarray], grays: list[np.ndarray]) -> None:
@@ -227,6 +265,22 @@ class ClassicSegmenter:
         occ, origin, vs = geo.visual_hull(carve_masks, ctx.poses, Ks, centre, radius, (-0.05 * D, z_hi),
                                           s.hull_voxels, s.hull_keep_fraction)
         plant = geo.plant_component(occ, origin, vs, centre[:2], 0.12 * D, s.join_gap_cm)
+        if s.fruit_keep_fraction < s.hull_keep_fraction:
+            # ripe fruit hang beside the pot, which hides them from part of the orbit: carved with a lower keep
+            # fraction from the strong red alone (a colour rooms rarely show near a plant), they join the plant
+            # when they hang within fruit_reach of the orbit axis, above the ground and below the plant's top
+            red_masks = [cv2.dilate(m.astype(np.uint8), kernel).astype(bool) if ctx.poses[i] is not None else None
+                         for i, m in enumerate(self._red_smalls)]
+            rocc, _, _ = geo.visual_hull(red_masks, ctx.poses, Ks, centre, radius, (-0.05 * D, z_hi), s.hull_voxels,
+                                         s.fruit_keep_fraction)
+            xs = origin[0] + np.arange(rocc.shape[0]) * vs
+            ys = origin[1] + np.arange(rocc.shape[1]) * vs
+            zs = origin[2] + np.arange(rocc.shape[2]) * vs
+            near = ((xs[:, None] - centre[0]) ** 2 + (ys[None, :] - centre[1]) ** 2 <= (s.fruit_reach * D) ** 2)
+            top = zs[np.argwhere(plant)[:, 2]].max() if plant.any() else -np.inf
+            fruit = rocc & near[:, :, None] & ((zs > -vs) & (zs <= top))[None, None, :] & ~plant
+            ctx.info["hull_voxels_fruit"] = int(fruit.sum())
+            plant |= fruit
         idx = np.argwhere(plant)
         ctx.info.update(orbit_centre=centre.round(3), orbit_radius_cm=round(D, 2), hull_voxel_cm=round(vs, 3),
                         hull_voxels_total=int(occ.sum()), hull_voxels_plant=int(len(idx)))
@@ -248,6 +302,44 @@ class ClassicSegmenter:
         self._Ks = Ks
 
     # ---------------------------------------------------------------- pass 2: one frame
+    def _learn_background(self, ctx: CaptureContext) -> None:
+        """Colour histograms of the plant region and of its surroundings over all frames -> a background-colour table.
+
+        Inside the projected hull lie the plant and whatever shows through its gaps; around it lies the background
+        (walls, floor, green objects of the room, which move through the plant region as the camera circles, but
+        spend most frames outside it). A colour counted more often around the plant (and on a found pot) than
+        inside it is background; plant-coloured pixels of such colours seed and grow nothing.
+        """
+        import cv2
+        from scipy.ndimage import gaussian_filter
+
+        s = self.s
+        n_in = np.zeros(_NBINS, np.float64)
+        n_ring = np.zeros(_NBINS, np.float64)
+        n_pot = np.zeros(_NBINS, np.float64)
+        for i, small in enumerate(self._small_rgb):
+            roi = self._roi_3d(i, ctx)
+            if roi is None:
+                continue
+            h, w = roi.shape
+            q = _colour_bins(small)
+            inside = roi
+            if ctx.pot is not None:
+                pot = geo.pot_silhouette(ctx.pot, ctx.roi_poses[i], self._Ks, (w, h))
+                n_pot += np.bincount(q[pot], minlength=_NBINS)
+                inside = roi & ~pot
+            n_in += np.bincount(q[inside], minlength=_NBINS)
+            if s.background_ring > 0:
+                ring = cv2.dilate(roi.astype(np.uint8), _disk(s.background_ring * max(h, w))).astype(bool) & ~roi
+                n_ring += np.bincount(q[ring], minlength=_NBINS)
+        shape = (256 >> _YSHIFT, 256 >> _CSHIFT, 256 >> _CSHIFT)
+        n_in = gaussian_filter(n_in.reshape(shape), 1.0).ravel()
+        self._bg_ring = gaussian_filter(n_ring.reshape(shape), 1.0).ravel() > s.background_ratio * n_in
+        self._bg_pot = gaussian_filter(n_pot.reshape(shape), 1.0).ravel() > s.background_ratio * n_in
+        self._background = True
+        ctx.info["background_colour_bins"] = int(self._bg_ring.sum())
+        ctx.info["pot_colour_bins"] = int(self._bg_pot.sum())
+
     def _roi_3d(self, i: int, ctx: CaptureContext) -> np.ndarray | None:
         import cv2
 
@@ -268,12 +360,12 @@ class ClassicSegmenter:
         r = (0.87 * ctx.voxel + s.roi_margin_cm * (1.5 if loose else 1.0)) * self._Ks[0, 0] / max(depth, 1e-3)
         return cv2.dilate(roi, _disk(np.ceil(r))).astype(bool)
 
-    def _pot_mask(self, i: int, ctx: CaptureContext, W: int, H: int) -> np.ndarray:
+    def _pot_mask(self, i: int, ctx: CaptureContext, W: int, H: int, small: bool = False) -> np.ndarray:
         """Pixels of frame ``i`` where the (plant-coloured) pot is seen, not plant in front of it: bool ``[H, W]``."""
         import cv2
 
         T = ctx.roi_poses[i]
-        sil = geo.pot_silhouette(ctx.pot, T, ctx.K, (W, H))
+        sil = geo.pot_silhouette(ctx.pot, T, self._Ks if small else ctx.K, (W, H))
         if not sil.any():
             return sil
         # plant voxels nearer to the camera than the pot's axis (at their height) hide the pot
@@ -340,13 +432,24 @@ class ClassicSegmenter:
         s = self.s
         H, W = rgb.shape[:2]
         strong, weak, pale, red_only = plant_colour_masks(rgb, s.colour, with_red=True)
+        if self._background is not None:
+            # background colours inside the plant region are left out where they form blobs (objects seen through
+            # gaps, the pot); thin runs of them (petioles, peduncles, leaf edges against a similar wall) are kept
+            q = _colour_bins(rgb)
+            bgc = self._bg_ring[q]
+            if ctx.pot is not None and ctx.roi_poses[i] is not None:
+                bgc |= self._bg_pot[q] & geo.pot_silhouette(ctx.pot, ctx.roi_poses[i], ctx.K, (W, H))
+            bgc = (bgc & (weak | pale)).astype(np.float32)
+            k_thin = 2 * max(1, int(round(s.thin_px * max(H, W) / 960))) + 1
+            keep = cv2.blur(bgc, (k_thin, k_thin)) < 0.5
+            strong, weak, pale, red_only = strong & keep, weak & keep, pale & keep, red_only & keep
         roi_small = self._roi_3d(i, ctx)
         locator = "3d" if ctx.poses and ctx.poses[i] is not None else "3d-interpolated"
         if roi_small is None:
             roi_small = self._roi_2d(i)
             locator = "2d"
         roi = cv2.resize(roi_small.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
-        if ctx.pot is not None and locator != "2d":
+        if ctx.pot is not None and locator != "2d" and self._background is None:
             roi &= ~self._pot_mask(i, ctx, W, H)
         # seeds: strong colour over a k x k neighbourhood (k = 2 px at 480, 3 px at 960): noisy pixels of green
         # walls seed nothing
@@ -396,6 +499,15 @@ class ClassicSegmenter:
         if s.use_cube and ctx.roi_poses and ctx.roi_poses[i] is not None and ctx.pose_source[i] in draw \
                 and ctx.K is not None:
             cube = geo.cube_silhouette(ctx.roi_poses[i], ctx.K, ctx.dist, (W, H), s.cube)
+            if s.cube_occlusion and cube.any():
+                expected, faces = geo.cube_appearance(ctx.roi_poses[i], ctx.K, ctx.dist, (W, H), s.cube)
+                if ctx.pose_source[i] != "markers":  # a borrowed camera: move the drawn cube onto the frame's
+                    moved = geo.align_cube(rgb, expected, faces)
+                    if moved is not None:
+                        expected, faces, _ = moved
+                        cube = faces >= 0
+                hidden = geo.cube_occluded(rgb, expected, faces)
+                cube &= ~(hidden | (faces < 0))
             if ctx.pot is not None and cube.any():
                 cube &= ~self._pot_hides_cube(i, ctx, W, H)
         fg = plant | cube

@@ -197,6 +197,125 @@ def cube_silhouette(
     return out.astype(bool)
 
 
+def cube_appearance(
+    T_cam_cube: np.ndarray, K: np.ndarray, dist: np.ndarray | None, size: tuple[int, int], cube: CubeSpec = CubeSpec(),
+    texels: int = 100,
+) -> tuple[np.ndarray, np.ndarray]:
+    """How the cube should look in one frame: its printed faces drawn with the camera.
+
+    Each face facing the camera is a white square with its ArUco marker centred; it is mapped into the
+    image by the homography of its projected corners. Returns ``(expected float32 [H, W]`` in [0, 1]
+    (0 = black print, 1 = white), ``face int8 [H, W]`` (index into :data:`plantsplat.cube.FACE_NAMES`,
+    -1 off the cube)). Comparing a frame with it shows where something stands in front of the cube.
+    """
+    import cv2
+
+    from plantsplat.cube import FACE_NAMES, marker_image
+
+    w, h = size
+    expected = np.zeros((h, w), np.float32)
+    face_map = np.full((h, w), -1, np.int8)
+    R, t = T_cam_cube[:3, :3], T_cam_cube[:3, 3]
+    cam = -R.T @ t
+    rvec = cv2.Rodrigues(R)[0]
+    m = int(round(texels * cube.marker_size / cube.size))
+    off = (texels - m) // 2
+    for k, name in enumerate(FACE_NAMES):
+        c, n, r, u = cube.face_frame(name)
+        if float(n @ (cam - c)) <= 1e-6:
+            continue  # seen from behind
+        hs = cube.size / 2
+        quad3 = np.array([c - r * hs + u * hs, c + r * hs + u * hs, c + r * hs - u * hs, c - r * hs - u * hs])
+        if np.any((quad3 @ R.T + t)[:, 2] <= 1e-3):
+            continue
+        uv, _ = cv2.projectPoints(quad3, rvec, t, K, np.zeros(5) if dist is None else dist)
+        tex = np.full((texels, texels), 255, np.uint8)
+        tex[off:off + m, off:off + m] = marker_image(cube.face_ids[k], m, cube)
+        src = np.array([[-0.5, -0.5], [texels - 0.5, -0.5], [texels - 0.5, texels - 0.5], [-0.5, texels - 0.5]],
+                       np.float32)
+        H = cv2.getPerspectiveTransform(src, uv.reshape(4, 2).astype(np.float32))
+        warped = cv2.warpPerspective(tex, H, (w, h), flags=cv2.INTER_LINEAR, borderValue=0)
+        inside = cv2.warpPerspective(np.ones((texels, texels), np.uint8), H, (w, h), flags=cv2.INTER_NEAREST,
+                                     borderValue=0).astype(bool)
+        expected[inside] = warped[inside] / 255.0
+        face_map[inside] = k
+    return expected, face_map
+
+
+def align_cube(rgb: np.ndarray, expected: np.ndarray, face_map: np.ndarray, max_shift: float = 0.3
+               ) -> tuple[np.ndarray, np.ndarray, tuple[float, float]] | None:
+    """Shift the drawn cube onto the cube in the frame (a camera interpolated along the orbit is a few pixels off).
+
+    Aligns the expected print with the frame's gray by OpenCV's ECC (translation only, inside the cube's
+    box grown by ``max_shift`` of its size). Returns ``(expected, face_map, (dx, dy))`` shifted, or None
+    when the alignment fails, is weak or would move the cube further than ``max_shift`` of its size.
+    """
+    import cv2
+
+    on = face_map >= 0
+    if on.sum() < 64:
+        return None
+    ys, xs = np.nonzero(on)
+    bw, bh = xs.max() - xs.min() + 1, ys.max() - ys.min() + 1
+    m = int(np.ceil(max_shift * max(bw, bh)))
+    H, W = face_map.shape
+    x0, x1 = max(0, xs.min() - m), min(W, xs.max() + m + 1)
+    y0, y1 = max(0, ys.min() - m), min(H, ys.max() + m + 1)
+    gray = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)[y0:y1, x0:x1].astype(np.float32)
+    tmpl = (expected[y0:y1, x0:x1] * 255).astype(np.float32)
+    mask = cv2.dilate(on[y0:y1, x0:x1].astype(np.uint8), np.ones((3, 3), np.uint8))
+    warp = np.eye(2, 3, dtype=np.float32)
+    try:
+        cc, warp = cv2.findTransformECC(tmpl, gray, warp, cv2.MOTION_TRANSLATION,
+                                        (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 60, 1e-4), mask, 5)
+    except cv2.error:
+        return None
+    dx, dy = float(warp[0, 2]), float(warp[1, 2])
+    if cc < 0.5 or np.hypot(dx, dy) > max_shift * max(bw, bh):
+        return None
+    A = np.array([[1, 0, dx], [0, 1, dy]], np.float32)
+    exp2 = cv2.warpAffine(expected, A, (W, H), flags=cv2.INTER_LINEAR, borderValue=0)
+    faces2 = cv2.warpAffine(face_map.astype(np.int16), A, (W, H), flags=cv2.INTER_NEAREST, borderValue=-1).astype(np.int8)
+    return exp2, faces2, (dx, dy)
+
+
+def cube_occluded(rgb: np.ndarray, expected: np.ndarray, face_map: np.ndarray, min_contrast: float = 15.0,
+                  tolerance: float = 0.45) -> np.ndarray:
+    """Pixels of the cube's faces where the frame does not show the printed pattern: bool ``[H, W]``.
+
+    Per face the black and white print levels are low and high percentiles of the gray where the pattern is dark
+    and light (robust to much of the face being hidden);
+    a pixel whose (slightly blurred) gray differs from the pattern's by more than ``tolerance`` of that
+    contrast, or that is clearly coloured (the print is black and white), shows something in front of
+    the cube (the pot, a leaf, a hand). A face whose print shows less than ``min_contrast`` gray levels
+    of contrast is hidden altogether. Isolated mismatches along print edges (pose error of a pixel or
+    two) are ignored: only mismatches covering most of a small neighbourhood count.
+    """
+    import cv2
+
+    gray = cv2.GaussianBlur(cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY).astype(np.float32), (5, 5), 1.5)
+    exp_b = cv2.GaussianBlur(expected, (5, 5), 1.5)
+    sat = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2HSV)[..., 1]
+    val = gray
+    bad = np.zeros(gray.shape, np.float32)
+    for k in np.unique(face_map[face_map >= 0]):
+        f = face_map == k
+        dark = f & (expected < 0.2)
+        light = f & (expected > 0.8)
+        if dark.sum() < 8 or light.sum() < 8:
+            bad[f] = 1.0
+            continue
+        lo, hi = float(np.percentile(gray[dark], 20)), float(np.percentile(gray[light], 80))
+        if hi - lo < min_contrast:
+            bad[f] = 1.0
+            continue
+        pred = lo + (hi - lo) * exp_b
+        mism = (np.abs(gray - pred) > tolerance * (hi - lo)) | ((sat > 100) & (val > 40))
+        bad[f] = mism[f].astype(np.float32)
+    frac = cv2.blur(bad, (7, 7))
+    return (frac > 0.6) & (face_map >= 0)
+
+
 def orbit_centre(poses: list[np.ndarray | None]) -> np.ndarray | None:
     """The 3D point closest (least squares) to every camera's optical axis: what the camera circles. ``[3]``."""
     A = np.zeros((3, 3))
