@@ -242,13 +242,14 @@ def cube_appearance(
     return expected, face_map
 
 
-def align_cube(rgb: np.ndarray, expected: np.ndarray, face_map: np.ndarray, max_shift: float = 0.3
-               ) -> tuple[np.ndarray, np.ndarray, tuple[float, float]] | None:
+def align_cube(rgb: np.ndarray, expected: np.ndarray, face_map: np.ndarray, max_shift: float = 0.5,
+               min_score: float = 0.35) -> tuple[np.ndarray, np.ndarray, tuple[float, float]] | None:
     """Shift the drawn cube onto the cube in the frame (a camera interpolated along the orbit is a few pixels off).
 
-    Aligns the expected print with the frame's gray by OpenCV's ECC (translation only, inside the cube's
-    box grown by ``max_shift`` of its size). Returns ``(expected, face_map, (dx, dy))`` shifted, or None
-    when the alignment fails, is weak or would move the cube further than ``max_shift`` of its size.
+    Finds the translation of the expected print that best matches the frame's gray (normalised
+    cross-correlation over the cube's box grown by ``max_shift`` of its size, masked to the faces),
+    refined to sub-pixel by OpenCV's ECC. Returns ``(expected, face_map, (dx, dy))`` shifted, or None when
+    the best match scores under ``min_score`` (the cube is hidden or not there).
     """
     import cv2
 
@@ -262,16 +263,29 @@ def align_cube(rgb: np.ndarray, expected: np.ndarray, face_map: np.ndarray, max_
     x0, x1 = max(0, xs.min() - m), min(W, xs.max() + m + 1)
     y0, y1 = max(0, ys.min() - m), min(H, ys.max() + m + 1)
     gray = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)[y0:y1, x0:x1].astype(np.float32)
-    tmpl = (expected[y0:y1, x0:x1] * 255).astype(np.float32)
-    mask = cv2.dilate(on[y0:y1, x0:x1].astype(np.uint8), np.ones((3, 3), np.uint8))
-    warp = np.eye(2, 3, dtype=np.float32)
-    try:
-        cc, warp = cv2.findTransformECC(tmpl, gray, warp, cv2.MOTION_TRANSLATION,
-                                        (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 60, 1e-4), mask, 5)
-    except cv2.error:
+    bx0, bx1, by0, by1 = xs.min(), xs.max() + 1, ys.min(), ys.max() + 1
+    tmpl = (expected[by0:by1, bx0:bx1] * 255).astype(np.float32)
+    tmask = on[by0:by1, bx0:bx1].astype(np.float32)
+    if gray.shape[0] < tmpl.shape[0] or gray.shape[1] < tmpl.shape[1]:
         return None
-    dx, dy = float(warp[0, 2]), float(warp[1, 2])
-    if cc < 0.5 or np.hypot(dx, dy) > max_shift * max(bw, bh):
+    # global search first (the error can exceed ECC's reach), then sub-pixel ECC from the best offset
+    score = cv2.matchTemplate(gray, tmpl, cv2.TM_CCOEFF_NORMED, mask=tmask)
+    score[~np.isfinite(score)] = -1
+    _, best, _, (px, py) = cv2.minMaxLoc(score)
+    dx, dy = float(px + x0 - bx0), float(py + y0 - by0)
+    if best < min_score:
+        return None
+    crop_t = (expected[y0:y1, x0:x1] * 255).astype(np.float32)
+    mask = on[y0:y1, x0:x1].astype(np.uint8)
+    try:
+        _, warp = cv2.findTransformECC(crop_t, gray, np.array([[1, 0, dx], [0, 1, dy]], np.float32),
+                                       cv2.MOTION_TRANSLATION,
+                                       (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 40, 1e-4), mask, 3)
+        if np.hypot(warp[0, 2] - dx, warp[1, 2] - dy) < 3:
+            dx, dy = float(warp[0, 2]), float(warp[1, 2])
+    except cv2.error:
+        pass
+    if np.hypot(dx, dy) > max_shift * max(bw, bh):
         return None
     A = np.array([[1, 0, dx], [0, 1, dy]], np.float32)
     exp2 = cv2.warpAffine(expected, A, (W, H), flags=cv2.INTER_LINEAR, borderValue=0)
