@@ -53,6 +53,42 @@ def test_ssim_gradient_flows():
     assert x.grad is not None and torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
 
 
+@pytest.mark.parametrize("h,w", [(83, 61), (12, 200)])
+def test_training_loss_ssim_is_fused_and_matches_torch(h, w):
+    """The training loss's SSIM term (trainer.ssim: the fused numba kernels on the CPU) gives the same
+    loss value and gradient as the PyTorch definition in train.metrics, in the loss as the trainer
+    builds it (render composited over a background, 0.8 L1 + 0.2 (1 - SSIM))."""
+    from plantsplat.train import trainer
+    from plantsplat.train.metrics import ssim as ssim_torch
+
+    g = torch.Generator().manual_seed(h * w)
+    bg = torch.rand(3, generator=g)
+    a = torch.rand(h, w, 1, generator=g)
+    gt = torch.rand(h, w, 3, generator=g) * a + (1 - a) * bg
+    color = (gt + 0.1 * torch.randn(h, w, 3, generator=g)).clamp(0, 1)
+    alpha = torch.rand(h, w, 1, generator=g)
+    losses, grads = [], []
+    for fn in (trainer.ssim, ssim_torch):
+        c = color.clone().requires_grad_(True)
+        al = alpha.clone().requires_grad_(True)
+        pred = c + (1 - al) * bg
+        s = fn(pred, gt)
+        loss = 0.8 * (pred - gt).abs().mean() + 0.2 * (1 - s)
+        loss.backward()
+        losses.append(float(loss.detach()))
+        grads.append((c.grad, al.grad))
+        if fn is trainer.ssim:
+            assert "SSIMCPU" in type(s.grad_fn).__name__ or any(
+                "SSIMCPU" in type(f).__name__ for f, _ in s.grad_fn.next_functions if f is not None), s.grad_fn
+    assert abs(losses[0] - losses[1]) < 1e-6
+    for fused, ref in zip(*grads):
+        assert float((fused - ref).abs().max()) <= 1e-4 * float(ref.abs().max())
+    # a ground truth that needs a gradient falls back to the PyTorch version (the fused one gives none)
+    gt_req = gt.clone().requires_grad_(True)
+    (1 - trainer.ssim(color, gt_req)).backward()
+    assert gt_req.grad is not None and float(gt_req.grad.abs().sum()) > 0
+
+
 @pytest.mark.skipif(not (WEIGHTS / "lpips_alex_v0.1.pth").is_file(), reason="LPIPS weights not in ../shared/weights")
 def test_lpips_test_vector():
     from plantsplat.io import read_image
