@@ -265,3 +265,21 @@ def test_undistortion_applied(tmp_path):
     v = load_scene(ws, need_masks=False).views[0]
     assert v.image.shape == img.shape and not np.array_equal(v.image, img)
     assert v.dist.size == 0  # pinhole from here on
+
+
+def test_omp_wait_policy_set_before_torch_loads():
+    """Importing plantsplat (as the CLI and plantsplat.train do) sets OMP_WAIT_POLICY=PASSIVE before
+    torch/numba start OpenMP, keeps a user's own value, and tells when torch came first."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    code = ("import sys, os; import plantsplat.cli, plantsplat.train; "
+            "import torch; print(os.environ['OMP_WAIT_POLICY'], plantsplat.omp_wait_policy_note() is None)")
+    run = lambda c, e: subprocess.run([sys.executable, "-c", c], env=e, capture_output=True, text=True,  # noqa: E731
+                                      check=True).stdout.split()
+    assert run(code, env) == ["PASSIVE", "True"]
+    assert run(code, {**env, "OMP_WAIT_POLICY": "ACTIVE"}) == ["ACTIVE", "True"]
+    late = "import os, torch, plantsplat; print(os.environ['OMP_WAIT_POLICY'], plantsplat.omp_wait_policy_note() is None)"
+    assert run(late, env) == ["PASSIVE", "False"]
