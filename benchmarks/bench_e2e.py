@@ -4,6 +4,7 @@ with the paper's accuracy table for object-centric and full-scene reconstruction
     python benchmarks/bench_e2e.py                          # the demo (120 frames, 540x960) -> results/e2e.json
     python benchmarks/bench_e2e.py --out /tmp/demo          # reuse (resume) a demo folder
     python benchmarks/bench_e2e.py --batch 5 --workers 2    # + 5 synthetic plants, object and full modes
+    python benchmarks/bench_e2e.py --skip-demo --batch 5 --num-frames 72 --max-size 640   # the batch part only
 
 Stage times and peak memory come from each workspace's run.json (the run that did the work), so a
 resumed demo reports the original timings; the machine and its load are recorded.
@@ -43,8 +44,22 @@ def demo(out: Path) -> dict:
     }
 
 
-def batch(n: int, workers: int, root: Path, iterations: int | None) -> dict:
+def _traits(ws: Path) -> dict | None:
+    f = ws / "traits.json"
+    return read_json(f) if f.is_file() else None
+
+
+def batch(n: int, workers: int, root: Path, iterations: int | None, num_frames: int, max_size: int,
+          modes: tuple[str, ...]) -> dict:
+    """``n`` synthetic plants: each run alone (object mode), then as a batch with ``workers`` per mode.
+
+    The single runs give the reference time (their sum over ``workers``) and the traits a batch must
+    reproduce; each batch gives its wall time and the accuracy table against the truth.
+    """
+    import shutil
+
     from plantsplat.synth import SynthConfig, generate
+    from plantsplat.traitdefs import TRAIT_KEYS
 
     root.mkdir(parents=True, exist_ok=True)
     rows, truth_rows = [], []
@@ -54,7 +69,7 @@ def batch(n: int, workers: int, root: Path, iterations: int | None) -> dict:
             generate(SynthConfig(seed=seed, out=cap, force=True))
         gt = read_json(cap / "ground_truth.json")
         rows.append((f"plant{seed}", str(cap / "video.mp4")))
-        truth_rows.append((f"plant{seed}", gt["height_cm"], gt["width1_cm"], gt["width2_cm"]))
+        truth_rows.append((f"plant{seed}", *[gt[k] for k in TRAIT_KEYS]))
     manifest = root / "plants.csv"
     with manifest.open("w", newline="") as f:
         w = csv.writer(f)
@@ -63,19 +78,51 @@ def batch(n: int, workers: int, root: Path, iterations: int | None) -> dict:
     gt_csv = root / "truth.csv"
     with gt_csv.open("w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["plant_id", "height_cm", "width1_cm", "width2_cm"])
+        w.writerow(["plant_id", *TRAIT_KEYS])
         w.writerows(truth_rows)
-    out = {}
-    for mode in ("object", "full"):
-        args = ["batch", str(manifest), "--out", str(root / mode), "--workers", str(workers),
-                "--ground-truth", str(gt_csv), "--mode", mode]
-        if iterations:
-            args += ["--iterations", str(iterations)]
+    common = ["--num-frames", str(num_frames), "--max-size", str(max_size)]
+    if iterations:
+        common += ["--iterations", str(iterations)]
+    out: dict = {"plants": n, "workers": workers, "num_frames": num_frames, "max_size": max_size,
+                 "iterations": iterations}
+    # every plant alone (object mode): the reference for the batch's time and numbers
+    single_dir = root / "single"
+    shutil.rmtree(single_dir, ignore_errors=True)
+    singles = {}
+    for pid, video in rows:
+        t0 = time.perf_counter()
+        code = cli(["run", video, "--out", str(single_dir / pid), *common])
+        singles[pid] = {"exit_code": code, "wall_seconds": round(time.perf_counter() - t0, 1),
+                        "traits": _traits(single_dir / pid)}
+        print(f"single {pid}: exit {code}, {singles[pid]['wall_seconds']} s", flush=True)
+    sum_single = sum(v["wall_seconds"] for v in singles.values())
+    out["single"] = {"per_plant": singles, "sum_seconds": round(sum_single, 1),
+                     "sum_over_workers_seconds": round(sum_single / workers, 1)}
+    for mode in modes:
+        bdir = root / mode
+        shutil.rmtree(bdir, ignore_errors=True)
+        args = ["batch", str(manifest), "--out", str(bdir), "--workers", str(workers),
+                "--ground-truth", str(gt_csv), "--mode", mode, *common]
         t0 = time.perf_counter()
         code = cli(args)
-        summary = read_json(root / mode / "batch.json")
-        out[mode] = {"exit_code": code, "wall_seconds": round(time.perf_counter() - t0, 1),
-                     "n_ok": summary["n_ok"], "accuracy": summary.get("accuracy", {}).get("table")}
+        wall = time.perf_counter() - t0
+        summary = read_json(bdir / "batch.json")
+        res = {"exit_code": code, "wall_seconds": round(wall, 1), "n_ok": summary["n_ok"],
+               "accuracy": summary.get("accuracy", {}).get("table")}
+        if mode == "object":
+            res["ratio_to_single_sum_over_workers"] = round(wall / (sum_single / workers), 3)
+            res["target_ratio"] = 1.1
+            diffs = {}
+            for pid, _ in rows:
+                a, b = singles[pid]["traits"], _traits(bdir / "plants" / pid)
+                if a and b:
+                    diffs[pid] = {k: (None if a.get(k) is None or b.get(k) is None else
+                                      round(abs(a[k] - b[k]) / max(abs(a[k]), 1e-9) * 100, 3)) for k in TRAIT_KEYS}
+            res["traits_diff_vs_single_pct"] = diffs
+            vals = [v for d in diffs.values() for v in d.values() if v is not None]
+            res["traits_max_diff_vs_single_pct"] = max(vals) if vals else None
+        out[mode] = res
+        print(f"batch {mode}: exit {code}, {res['wall_seconds']} s", flush=True)
     return out
 
 
@@ -85,13 +132,23 @@ def main() -> int:
     ap.add_argument("--batch", type=int, default=0, help="number of synthetic plants for the batch part")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--iterations", type=int, default=None)
+    ap.add_argument("--num-frames", type=int, default=120, help="frames per plant in the batch part")
+    ap.add_argument("--max-size", type=int, default=960, help="working image size in the batch part")
+    ap.add_argument("--modes", nargs="+", default=["object", "full"], choices=["object", "full"])
+    ap.add_argument("--skip-demo", action="store_true", help="keep the demo figures of the last results file")
+    ap.add_argument("--results", type=Path, default=RESULTS / "e2e.json")
     args = ap.parse_args()
-    result = {"benchmark": "e2e", "machine": machine_info(), "demo": demo(args.out)}
+    previous = read_json(args.results) if args.results.is_file() else {}
+    result = {"benchmark": "e2e", "machine": machine_info()}
+    result["demo"] = previous.get("demo") if args.skip_demo else demo(args.out)
     if args.batch:
-        result["batch"] = batch(args.batch, args.workers, args.out.parent / "plantsplat-bench-batch", args.iterations)
+        result["batch"] = batch(args.batch, args.workers, args.out.parent / "plantsplat-bench-batch", args.iterations,
+                                args.num_frames, args.max_size, tuple(args.modes))
+    elif previous.get("batch"):
+        result["batch"] = previous["batch"]
     result["machine_after"] = {"loadavg": machine_info()["loadavg"]}
-    write_json_atomic(RESULTS / "e2e.json", result)
-    print(f"wrote {RESULTS / 'e2e.json'}")
+    write_json_atomic(args.results, result)
+    print(f"wrote {args.results}")
     return 0
 
 

@@ -460,7 +460,9 @@ class ClassicSegmenter:
         # so that dark red/purple walls next to leaves are not grown into
         plant = np.zeros((H, W), bool)
         red_seeds = seeds & red_only
-        for cand, sd in (((weak & ~red_only & roi & band), seeds & ~red_only), ((red_only & roi & band), red_seeds)):
+        # strong pixels join wherever they connect to a seed (thin petioles and peduncles, too narrow to seed)
+        grow = band | strong
+        for cand, sd in (((weak & ~red_only & roi & grow), seeds & ~red_only), ((red_only & roi & grow), red_seeds)):
             n, lab = cv2.connectedComponents(cand.astype(np.uint8), connectivity=8)
             if n > 1:
                 has_seed = np.zeros(n, bool)

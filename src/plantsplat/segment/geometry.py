@@ -234,11 +234,18 @@ def cube_appearance(
         src = np.array([[-0.5, -0.5], [texels - 0.5, -0.5], [texels - 0.5, texels - 0.5], [-0.5, texels - 0.5]],
                        np.float32)
         H = cv2.getPerspectiveTransform(src, uv.reshape(4, 2).astype(np.float32))
-        warped = cv2.warpPerspective(tex, H, (w, h), flags=cv2.INTER_LINEAR, borderValue=0)
-        inside = cv2.warpPerspective(np.ones((texels, texels), np.uint8), H, (w, h), flags=cv2.INTER_NEAREST,
+        q = uv.reshape(4, 2)
+        bx0, by0 = max(0, int(np.floor(q[:, 0].min())) - 1), max(0, int(np.floor(q[:, 1].min())) - 1)
+        bx1, by1 = min(w, int(np.ceil(q[:, 0].max())) + 2), min(h, int(np.ceil(q[:, 1].max())) + 2)
+        if bx1 <= bx0 or by1 <= by0:
+            continue
+        Hb = np.array([[1, 0, -bx0], [0, 1, -by0], [0, 0, 1]], np.float64) @ H  # into the face's box
+        size_b = (bx1 - bx0, by1 - by0)
+        warped = cv2.warpPerspective(tex, Hb, size_b, flags=cv2.INTER_LINEAR, borderValue=0)
+        inside = cv2.warpPerspective(np.ones((texels, texels), np.uint8), Hb, size_b, flags=cv2.INTER_NEAREST,
                                      borderValue=0).astype(bool)
-        expected[inside] = warped[inside] / 255.0
-        face_map[inside] = k
+        expected[by0:by1, bx0:bx1][inside] = warped[inside] / 255.0
+        face_map[by0:by1, bx0:bx1][inside] = k
     return expected, face_map
 
 
@@ -307,15 +314,23 @@ def cube_occluded(rgb: np.ndarray, expected: np.ndarray, face_map: np.ndarray, m
     """
     import cv2
 
-    gray = cv2.GaussianBlur(cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY).astype(np.float32), (5, 5), 1.5)
-    exp_b = cv2.GaussianBlur(expected, (5, 5), 1.5)
-    sat = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2HSV)[..., 1]
-    val = gray
+    out = np.zeros(face_map.shape, bool)
+    on = face_map >= 0
+    if not on.any():
+        return out
+    ys, xs = np.nonzero(on)  # work in the cube's box (grown for the filters)
+    y0, y1 = max(0, ys.min() - 8), min(on.shape[0], ys.max() + 9)
+    x0, x1 = max(0, xs.min() - 8), min(on.shape[1], xs.max() + 9)
+    crop = np.ascontiguousarray(rgb[y0:y1, x0:x1])
+    fmap, expc = face_map[y0:y1, x0:x1], expected[y0:y1, x0:x1]
+    gray = cv2.GaussianBlur(cv2.cvtColor(crop, cv2.COLOR_RGB2GRAY).astype(np.float32), (5, 5), 1.5)
+    exp_b = cv2.GaussianBlur(np.ascontiguousarray(expc), (5, 5), 1.5)
+    sat = cv2.cvtColor(crop, cv2.COLOR_RGB2HSV)[..., 1]
     bad = np.zeros(gray.shape, np.float32)
-    for k in np.unique(face_map[face_map >= 0]):
-        f = face_map == k
-        dark = f & (expected < 0.2)
-        light = f & (expected > 0.8)
+    for k in np.unique(fmap[fmap >= 0]):
+        f = fmap == k
+        dark = f & (expc < 0.2)
+        light = f & (expc > 0.8)
         if dark.sum() < 8 or light.sum() < 8:
             bad[f] = 1.0
             continue
@@ -324,10 +339,10 @@ def cube_occluded(rgb: np.ndarray, expected: np.ndarray, face_map: np.ndarray, m
             bad[f] = 1.0
             continue
         pred = lo + (hi - lo) * exp_b
-        mism = (np.abs(gray - pred) > tolerance * (hi - lo)) | ((sat > 100) & (val > 40))
+        mism = (np.abs(gray - pred) > tolerance * (hi - lo)) | ((sat > 100) & (gray > 40))
         bad[f] = mism[f].astype(np.float32)
-    frac = cv2.blur(bad, (7, 7))
-    return (frac > 0.6) & (face_map >= 0)
+    out[y0:y1, x0:x1] = (cv2.blur(bad, (7, 7)) > 0.6) & (fmap >= 0)
+    return out
 
 
 def orbit_centre(poses: list[np.ndarray | None]) -> np.ndarray | None:
