@@ -352,3 +352,50 @@ def test_fused_ssim_matches_torch_ssim_values_and_gradients(h, w):
         assert abs(float(ssim_cpu(gt, gt)) - float(ssim(gt, gt))) < 1e-6
     with pytest.raises(ValueError):
         ssim_cpu(pred, gt[:, :-1] if w > 1 else gt[:-1])
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_numba_sh_colours_match_torch_values_and_gradients(degree):
+    """sh_colors_cpu (the cpu backend's SH colours) against the autograd version the reference backend
+    uses, clamp max(SH + 0.5, 0) included: values within 2e-6, gradients of means and coefficients within
+    1e-5 relative; with more coefficients than the degree needs (extra ones: zero gradient), clamped
+    colours, a Gaussian at the camera centre, and float64 input."""
+    from plantsplat.raster.projection import spherical_harmonics
+    from plantsplat.raster.sh_cpu import sh_colors_cpu
+
+    g = torch.Generator().manual_seed(10 + degree)
+    n = 300
+    campos = torch.tensor([0.4, -0.3, 1.2])
+    means = campos + torch.randn(n, 3, generator=g) * 2.0
+    means[0] = campos  # zero direction: F.normalize gives 0
+    means[1] = campos + torch.tensor([1e-3, 0.0, 0.0])  # very short direction
+    coeffs = torch.randn(n, 16, 3, generator=g) * 0.6  # K = 16 > (degree + 1)^2 except at degree 3
+    gw = torch.randn(n, 3, generator=g)
+    for dtype in (torch.float32, torch.float64):
+        res = []
+        for fn in ("torch", "numba"):
+            m = means.detach().clone().to(dtype).requires_grad_(True)
+            c = coeffs.detach().clone().to(dtype).requires_grad_(True)
+            if fn == "torch":
+                rgb = torch.clamp_min(spherical_harmonics(degree, m - campos.to(dtype), c) + 0.5, 0.0)
+            else:
+                rgb = sh_colors_cpu(degree, m, campos.to(dtype), c)
+            (rgb * gw.to(dtype)).sum().backward()
+            res.append((rgb.detach(), m.grad, c.grad))
+        (r_ref, gm_ref, gc_ref), (r, gm, gc) = res
+        assert r.dtype == dtype and 0 < int((r_ref == 0).sum()) < r.numel()  # some colours are clamped
+        torch.testing.assert_close(r, r_ref, atol=2e-6, rtol=0)
+        assert _rel(gc, gc_ref) < 1e-5
+        nb = (degree + 1) ** 2
+        assert float(gc[:, nb:].abs().sum()) == 0.0 and float(gc[:, :nb].abs().sum()) > 0
+        if degree == 0:
+            assert gm_ref is None and gm is None  # the colour does not depend on the direction
+        else:
+            # row 0 (at the camera centre: gradient / 1e-12, as F.normalize) apart, or it hides the others
+            assert _rel(gm[:1], gm_ref[:1]) < 1e-5, _rel(gm[:1], gm_ref[:1])
+            assert _rel(gm[1:], gm_ref[1:]) < 1e-5, _rel(gm[1:], gm_ref[1:])
+            assert float(gm[1:].abs().sum()) > 0
+    with pytest.raises(ValueError):
+        sh_colors_cpu(2, means, campos, coeffs[:, :4])
+    with pytest.raises(ValueError):
+        sh_colors_cpu(4, means, campos, coeffs)

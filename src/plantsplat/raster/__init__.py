@@ -1,7 +1,8 @@
 """Differentiable 3D Gaussian rasterization with one interface and three backends.
 
 - ``cpu``: numba kernels with hand-written backward passes: EWA projection parallel over Gaussians
-  (:mod:`plantsplat.raster.cpu_projection`), compositing parallel over 16x16 tiles and vectorised
+  (:mod:`plantsplat.raster.cpu_projection`), SH colours parallel over Gaussians
+  (:mod:`plantsplat.raster.sh_cpu`), compositing parallel over 16x16 tiles and vectorised
   over the pixels of a tile (:mod:`plantsplat.raster.cpu`). The default without CUDA.
 - ``gsplat``: gsplat's CUDA ``rasterization()`` (:mod:`plantsplat.raster.gsplat_backend`), chosen by
   ``auto`` when CUDA and gsplat are available.
@@ -228,7 +229,12 @@ def rasterize(
     )  # [N, 2], [N, 3], [N], [N, 2]
     if sh_degree is not None:
         campos = -viewmat[:3, :3].T @ viewmat[:3, 3]  # [3] camera centre in world
-        rgb = torch.clamp_min(spherical_harmonics(sh_degree, means - campos, colors) + 0.5, 0.0)  # [N, 3]
+        if backend == "reference":
+            rgb = torch.clamp_min(spherical_harmonics(sh_degree, means - campos, colors) + 0.5, 0.0)  # [N, 3]
+        else:  # the same colours and gradients from numba kernels (tested against the line above)
+            from .sh_cpu import sh_colors_cpu
+
+            rgb = sh_colors_cpu(sh_degree, means, campos.detach(), colors)  # [N, 3]
     else:
         rgb = colors  # [N, 3]
     if means2d.requires_grad:
