@@ -182,6 +182,19 @@ def test_strategy_grow_prune_keeps_optimizer_in_sync():
     # split children are 1.6x smaller than the parent
     np.testing.assert_allclose(torch.exp(params["scales"][-2:]).detach().numpy(), 5.0 / 1.6, rtol=1e-5)
     assert int((torch.exp(params["scales"][:-2]).detach().max(dim=-1).values < 4.0).sum()) == 33 - 2 - 9  # 9 large stay
+    # the (fused) Adam keeps stepping on the resized moments, as the per-tensor Adam does
+    assert all(o.param_groups[0]["fused"] for o in opts.values())
+    ref = {k: torch.nn.Parameter(v.detach().clone()) for k, v in params.items()}
+    ref_opts = {}
+    for k, o in opts.items():
+        ref_opts[k] = torch.optim.Adam([ref[k]], lr=lrs[k], eps=1e-15, foreach=False)
+        ref_opts[k].state[ref[k]] = {n: v.clone() for n, v in o.state[params[k]].items()}
+    for ps, os_ in ((params, opts), (ref, ref_opts)):
+        sum((p * torch.linspace(-1, 1, p.numel()).view_as(p)).sum() for p in ps.values()).backward()
+        for o in os_.values():
+            o.step()
+    for k in params:
+        torch.testing.assert_close(params[k].detach(), ref[k].detach(), atol=1e-6, rtol=1e-5)
 
 
 def test_strategy_opacity_reset():
