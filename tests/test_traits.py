@@ -360,3 +360,40 @@ def test_large_clouds_clustered_on_a_subset_give_the_same_plant():
     assert res.quality == "ok", res.reasons
     assert len(res.plant_points) == int(plant.sum())
     assert res.traits["height_cm"] == pytest.approx(traitdefs.plant_height(pts[plant]), rel=1e-9)
+
+
+def test_hanging_fruit_without_peduncles_join_the_plant():
+    """Fruit whose peduncles were not reconstructed hang as separate red clusters: they join the plant when
+    they are within reach and below its top; red things far away or above the plant, and green clusters at
+    the same distance, do not."""
+    rng = np.random.default_rng(3)
+    pts, cols, plant = make_plant_scene(seed=2, floaters=False, separated_leaf=False)
+    keep = ~((cols[:, 0] == 80) & (cols[:, 1] == 120))  # drop the peduncles
+    pts, cols, plant = pts[keep], cols[keep], plant[keep]
+    body = pts[plant]
+    crown = np.array([24.0, 3.0, 12.0])  # make_plant_scene's crown; its fruit hang 7 cm out, 3-5 cm lower
+
+    def blob(c, colour, n=400):
+        s = rng.normal(size=(n, 3))
+        return c + 1.2 * s / np.linalg.norm(s, axis=1, keepdims=True), np.tile(np.array(colour, np.uint8), (n, 1))
+
+    hang, hang_c = blob(crown + [2.5, 0.0, -8.0], (200, 20, 30))  # under the crown, 5-8 cm from the other fruit
+    far, far_c = blob(crown + [45.0, 0.0, 0.0], (200, 20, 30))  # a red object across the room
+    high, high_c = blob(crown + [0.0, 0.0, body[:, 2].max() - crown[2] + 6.0], (200, 20, 30))  # above the plant
+    green, green_c = blob(crown + [-2.5, 0.0, -8.0], (40, 120, 40))  # a green blob there (not fruit)
+    from scipy.spatial import cKDTree
+
+    d_hang = cKDTree(body).query(hang)[0].min()
+    assert 4.0 < d_hang < 15.0  # beyond the usual merge distance, within fruit reach
+    P = np.concatenate([pts, hang, far, high, green])
+    C = np.concatenate([cols, hang_c, far_c, high_c, green_c])
+    res = measure_traits(P, C, calibrated=True)
+    got = res.plant_points
+    near = lambda b: np.isin(got.view([("", got.dtype)] * 3), b.view([("", b.dtype)] * 3)).any()  # noqa: E731
+    assert near(hang) and not near(far) and not near(high) and not near(green)
+    assert res.traits["fruit_count"] == 4  # the three around the crown and the one under it
+    assert res.traits["height_cm"] > body[:, 2].max() - body[:, 2].min() + 2.0  # the hanging fruit counts for height
+    assert any("fruit-coloured" in n for n in res.notes)
+    # switched off: without their peduncles all fruit stay out (they hang more than 4 cm from the leaves)
+    off = measure_traits(P, C, calibrated=True, settings=TraitSettings(fruit_join_cm=0))
+    assert off.traits["fruit_count"] == 0

@@ -88,6 +88,11 @@ class TraitSettings:
     """Clusters closer than this to the plant join it (separated leaves, fruit on thin stems)."""
     min_cluster_fraction: float = 0.002
     """Clusters smaller than this fraction of the main plant cluster are floaters."""
+    fruit_join_cm: float = 15.0
+    """Clusters left out as far from the plant join it when they are mostly fruit-coloured, lie within this distance
+    of the plant and no higher than its top: fruit hang on peduncles too thin to be reconstructed."""
+    fruit_join_fraction: float = 0.5
+    """Share of fruit-coloured points that makes a cluster a hanging fruit."""
     trim: float = 0.0005
     """Robust height/widths use the trim .. 1-trim quantiles instead of min .. max (0.0005: the ~0.05 % most
     extreme points on each side are ignored)."""
@@ -414,8 +419,30 @@ def measure_traits(
         return _failed("no plant cluster found in the cloud (only the cube or noise): check the masks and export",
                        s, scale=scale, cube=cube_json, clusters=clusters_info)
     plant_mask = sel.mask
+    joined = []
+    if cols is not None and s.fruit_join_cm > 0:
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(pts_cm[plant_mask])
+        top = float(pts_cm[plant_mask, 2].max())
+        for e in sel.excluded:
+            if e["reason"] != "far from the plant":
+                continue
+            m = labels == e["label"]
+            q = pts_cm[m]
+            if fruit_mask(cols[m], s).mean() < s.fruit_join_fraction or q[:, 2].max() > top:
+                continue
+            d, _ = tree.query(q, k=1, distance_upper_bound=s.fruit_join_cm)
+            if np.isfinite(d).any():
+                joined.append(e["label"])
+        if joined:
+            plant_mask = plant_mask | np.isin(labels, joined)
+            sel.excluded[:] = [e for e in sel.excluded if e["label"] not in joined]
+            sel.clusters.extend(joined)
+            notes.append(f"{len(joined)} fruit-coloured cluster(s) hanging within {s.fruit_join_cm:g} cm of the plant "
+                         "joined it (fruit on peduncles too thin to reconstruct)")
     reasons.extend(sel.reasons)
-    clusters_info.update({"plant_clusters": sel.clusters, "plant_main_fraction": sel.main_fraction,
+    clusters_info.update({"plant_clusters": sel.clusters, "fruit_joined": joined, "plant_main_fraction": sel.main_fraction,
                           "excluded": sel.excluded[:20], "plant_points": int(plant_mask.sum())})
     P = pts_cm[plant_mask]  # [M, 3]
     C = None if cols is None else cols[plant_mask]
