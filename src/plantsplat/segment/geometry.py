@@ -341,7 +341,8 @@ def cube_occluded(rgb: np.ndarray, expected: np.ndarray, face_map: np.ndarray, m
         pred = lo + (hi - lo) * exp_b
         mism = (np.abs(gray - pred) > tolerance * (hi - lo)) | ((sat > 100) & (gray > 40))
         bad[f] = mism[f].astype(np.float32)
-    out[y0:y1, x0:x1] = (cv2.blur(bad, (7, 7)) > 0.6) & (fmap >= 0)
+    onf = (fmap >= 0).astype(np.float32)  # the share is taken over face pixels only (no ring left at the border)
+    out[y0:y1, x0:x1] = (cv2.blur(bad, (7, 7)) > 0.6 * np.maximum(cv2.blur(onf, (7, 7)), 1e-6)) & (onf > 0)
     return out
 
 
