@@ -4,8 +4,10 @@ The training loss ``0.8 L1 + 0.2 (1 - SSIM)`` needs SSIM of the render against t
 every step. As separable depthwise ``conv2d`` calls in PyTorch (11x11 Gaussian window, sigma 1.5,
 zero padding, the usual ``C1 = 0.01^2``, ``C2 = 0.03^2``) it costs more than rasterizing the image
 on a CPU. Here the five local moments (``x, y, x^2, y^2, x y``) are blurred by two vectorised
-1-D passes; the forward pass also stores ``dS/dmu_x``, ``dS/dE[x^2]`` and ``dS/dE[x y]`` per pixel,
-and the backward pass blurs those three maps with the same (symmetric) window:
+1-D passes, block of rows by block of rows on the interleaved ``[H, W, C]`` image (no planar copies,
+no full-image moment maps: an earlier version that wrote them spent most of its time on memory);
+the forward pass also stores ``dS/dmu_x``, ``dS/dE[x^2]`` and ``dS/dE[x y]`` per pixel, and the
+backward pass blurs those three maps with the same (symmetric) window:
 
     dSSIM/dx = (G * dS/dmu_x + 2 x G * dS/dE[x^2] + y G * dS/dE[x y]) / (C H W)
 
@@ -41,123 +43,155 @@ def _window(sigma: float = 1.5) -> np.ndarray:
     return (g / g.sum()).astype(np.float32)
 
 
-@njit(parallel=True, fastmath=_FM, cache=True)
-def _blur(maps, g, out):  # pragma: no cover - numba
-    """Separable blur of maps [M, H, W] with the 11-tap window g, zero padding (as conv2d padding=5)."""
-    m, h, w = maps.shape
+_BLOCK = 48  # output rows per parallel task; each task re-blurs 2 * 5 halo rows horizontally
+
+
+@njit(inline="always", fastmath=_FM)
+def _hblur_row(pad, g, c, out, si):  # pragma: no cover - numba
+    """out[m, si, :] = horizontal blur of the zero-padded interleaved rows pad[m] (taps c apart)."""
+    nm = pad.shape[0]
+    n = out.shape[2]
+    for m in range(nm):
+        o = out[m, si]
+        p = pad[m]
+        for q in range(n):
+            o[q] = _F32(0.0)
+        for t in range(g.shape[0]):
+            gt = g[t]
+            pt = p[c * t:c * t + n]
+            for q in range(n):
+                o[q] += gt * pt[q]
+
+
+@njit(inline="always", fastmath=_FM)
+def _vblur_row(hb, g, i, s0, h, acc):  # pragma: no cover - numba
+    """acc[m, :] = vertical blur at image row i of the horizontally blurred rows hb[m, row - s0, :]
+    (rows outside [0, h) are zero)."""
     r = (g.shape[0] - 1) // 2
-    tmp = np.zeros((m, h + 2 * r, w), np.float32)  # horizontal pass, rows padded for the vertical one
-    for mi in prange(m * h):
-        k = mi // h
-        i = mi - k * h
-        row = np.zeros(w + 2 * r, np.float32)
-        row[r:r + w] = maps[k, i]
-        acc = np.zeros(w, np.float32)
-        for t in range(2 * r + 1):
-            gt = g[t]
-            for j in range(w):
-                acc[j] += gt * row[j + t]
-        tmp[k, i + r] = acc
-    for mi in prange(m * h):
-        k = mi // h
-        i = mi - k * h
-        acc = np.zeros(w, np.float32)
-        for t in range(2 * r + 1):
-            gt = g[t]
-            src = tmp[k, i + t]
-            for j in range(w):
-                acc[j] += gt * src[j]
-        out[k, i] = acc
+    nm = hb.shape[0]
+    n = hb.shape[2]
+    for m in range(nm):
+        for q in range(n):
+            acc[m, q] = _F32(0.0)
+    for t in range(g.shape[0]):
+        src = i + t - r
+        if src < 0 or src >= h:
+            continue
+        gt = g[t]
+        si = src - s0
+        for m in range(nm):
+            a = acc[m]
+            src_row = hb[m, si]
+            for q in range(n):
+                a[q] += gt * src_row[q]
 
 
-@njit(parallel=True, fastmath=_FM, cache=True)
-def _moments(x, y, out):  # pragma: no cover - numba
-    """out[0..4] = x, y, x^2, y^2, x y for planar images x, y [C, H, W] (out [5, C*H, W])."""
-    c, h, w = x.shape
-    for ci in prange(c * h):
-        k = ci // h
-        i = ci - k * h
-        for j in range(w):
-            a = x[k, i, j]
-            b = y[k, i, j]
-            out[0, ci, j] = a
-            out[1, ci, j] = b
-            out[2, ci, j] = a * a
-            out[3, ci, j] = b * b
-            out[4, ci, j] = a * b
+@njit(parallel=True, fastmath=_FM, cache=True, error_model="numpy")
+def _ssim_fwd(x, y, c, g, want_grad, dmaps, partial):  # pragma: no cover - numba
+    """SSIM of interleaved images x, y [H, W*c] (c channels): partial[i] = sum of row i's SSIM map;
+    if want_grad, dmaps[0..2, i] = dS/dmu_x, dS/dE[x^2], dS/dE[x y] per pixel and channel.
+
+    Per block of rows: the five local moments (x, y, x^2, y^2, x y) of the block and its halo are
+    blurred horizontally into a small buffer, then vertically row by row straight into the SSIM
+    formula, so no full-image moment maps are written."""
+    h, n = x.shape
+    r = (g.shape[0] - 1) // 2
+    nblk = (h + _BLOCK - 1) // _BLOCK
+    for b in prange(nblk):
+        i0 = b * _BLOCK
+        i1 = min(h, i0 + _BLOCK)
+        s0 = max(0, i0 - r)
+        s1 = min(h, i1 + r)
+        pad = np.zeros((5, n + 2 * r * c), np.float32)  # borders stay zero (zero padding)
+        hb = np.empty((5, s1 - s0, n), np.float32)
+        for row in range(s0, s1):
+            for q in range(n):
+                a = x[row, q]
+                v = y[row, q]
+                pad[0, r * c + q] = a
+                pad[1, r * c + q] = v
+                pad[2, r * c + q] = a * a
+                pad[3, r * c + q] = v * v
+                pad[4, r * c + q] = a * v
+            _hblur_row(pad, g, c, hb, row - s0)
+        mu = np.empty((5, n), np.float32)
+        for i in range(i0, i1):
+            _vblur_row(hb, g, i, s0, h, mu)
+            s_row = _F32(0.0)
+            for q in range(n):
+                mx = mu[0, q]
+                my = mu[1, q]
+                sxx = mu[2, q] - mx * mx
+                syy = mu[3, q] - my * my
+                sxy = mu[4, q] - mx * my
+                a1 = _F32(2.0) * mx * my + _C1
+                a2 = _F32(2.0) * sxy + _C2
+                b1 = mx * mx + my * my + _C1
+                b2 = sxx + syy + _C2
+                s = (a1 * a2) / (b1 * b2)
+                s_row += s
+                if want_grad:
+                    dmaps[0, i, q] = s * _F32(2.0) * (my / a1 - my / a2 - mx / b1 + mx / b2)
+                    dmaps[1, i, q] = -s / b2
+                    dmaps[2, i, q] = _F32(2.0) * s / a2
+            partial[i] = s_row
 
 
-@njit(parallel=True, fastmath=_FM, cache=True)
-def _ssim_maps(mu, want_grad, dmaps, partial):  # pragma: no cover - numba
-    """SSIM per pixel from the blurred moments mu [5, R, W]; partial[row] = row sums of SSIM; if
-    want_grad, dmaps[0..2] = dS/dmu_x, dS/dE[x^2], dS/dE[x y]."""
-    _, rows, w = mu.shape
-    for i in prange(rows):
-        s_row = np.float32(0.0)
-        for j in range(w):
-            mx = mu[0, i, j]
-            my = mu[1, i, j]
-            sxx = mu[2, i, j] - mx * mx
-            syy = mu[3, i, j] - my * my
-            sxy = mu[4, i, j] - mx * my
-            a1 = np.float32(2.0) * mx * my + _C1
-            a2 = np.float32(2.0) * sxy + _C2
-            b1 = mx * mx + my * my + _C1
-            b2 = sxx + syy + _C2
-            s = (a1 * a2) / (b1 * b2)
-            s_row += s
-            if want_grad:
-                dmaps[0, i, j] = s * np.float32(2.0) * (my / a1 - my / a2 - mx / b1 + mx / b2)
-                dmaps[1, i, j] = -s / b2
-                dmaps[2, i, j] = np.float32(2.0) * s / a2
-        partial[i] = s_row
+@njit(parallel=True, fastmath=_FM, cache=True, error_model="numpy")
+def _ssim_bwd(dmaps, x, y, c, g, scale, out):  # pragma: no cover - numba
+    """out = scale * (G * dmaps[0] + 2 x (G * dmaps[1]) + y (G * dmaps[2])), interleaved [H, W*c]
+    (G: the same symmetric window), blocked as :func:`_ssim_fwd`."""
+    h, n = x.shape
+    r = (g.shape[0] - 1) // 2
+    nblk = (h + _BLOCK - 1) // _BLOCK
+    for b in prange(nblk):
+        i0 = b * _BLOCK
+        i1 = min(h, i0 + _BLOCK)
+        s0 = max(0, i0 - r)
+        s1 = min(h, i1 + r)
+        pad = np.zeros((3, n + 2 * r * c), np.float32)
+        hb = np.empty((3, s1 - s0, n), np.float32)
+        for row in range(s0, s1):
+            for m in range(3):
+                for q in range(n):
+                    pad[m, r * c + q] = dmaps[m, row, q]
+            _hblur_row(pad, g, c, hb, row - s0)
+        bd = np.empty((3, n), np.float32)
+        for i in range(i0, i1):
+            _vblur_row(hb, g, i, s0, h, bd)
+            for q in range(n):
+                out[i, q] = scale * (bd[0, q] + _F32(2.0) * x[i, q] * bd[1, q] + y[i, q] * bd[2, q])
 
 
-@njit(parallel=True, fastmath=_FM, cache=True)
-def _ssim_grad(bd, x, y, scale, out):  # pragma: no cover - numba
-    """out = scale * (bd[0] + 2 x bd[1] + y bd[2]), planar [C, H, W] with bd [3, C*H, W]."""
-    c, h, w = x.shape
-    for ci in prange(c * h):
-        k = ci // h
-        i = ci - k * h
-        for j in range(w):
-            out[k, i, j] = scale * (bd[0, ci, j] + np.float32(2.0) * x[k, i, j] * bd[1, ci, j]
-                                    + y[k, i, j] * bd[2, ci, j])
-
-
-def _planar(t: Tensor) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().to(torch.float32).permute(2, 0, 1).numpy())  # [C, H, W]
+def _rows(t: Tensor) -> np.ndarray:
+    """[H, W, C] tensor -> float32 [H, W*C] array (no copy when already contiguous float32)."""
+    a = t.detach().to(torch.float32).contiguous().numpy()
+    return a.reshape(a.shape[0], -1)
 
 
 class _SSIMCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, pred, gt):
-        x = _planar(pred)
-        y = _planar(gt)
-        c, h, w = x.shape
+        x = _rows(pred)
+        y = _rows(gt)
+        h, n = x.shape
+        c = pred.shape[2]
         g = _window()
-        mom = np.empty((5, c * h, w), np.float32)
-        _moments(x, y, mom)
-        mu = np.empty_like(mom)
-        _blur(mom.reshape(5 * c, h, w), g, mu.reshape(5 * c, h, w))  # per channel plane
         want = bool(ctx.needs_input_grad[0])
-        dmaps = np.empty((3, c * h, w) if want else (3, 0, 0), np.float32)
-        partial = np.empty(c * h, np.float32)
-        _ssim_maps(mu, want, dmaps, partial)
-        n = c * h * w
+        dmaps = np.empty((3, h, n) if want else (3, 0, 0), np.float32)
+        partial = np.empty(h, np.float32)
+        _ssim_fwd(x, y, c, g, want, dmaps, partial)
         if want:
-            ctx.saved = (x, y, dmaps, g, n)
-        return pred.new_tensor(float(partial.astype(np.float64).sum() / n))
+            ctx.saved = (x, y, c, dmaps, g, pred.shape)
+        return pred.new_tensor(float(partial.astype(np.float64).sum() / (h * n)))
 
     @staticmethod
     def backward(ctx, g_out):
-        x, y, dmaps, g, n = ctx.saved
-        c, h, w = x.shape
-        bd = np.empty_like(dmaps)
-        _blur(dmaps.reshape(3 * c, h, w), g, bd.reshape(3 * c, h, w))
+        x, y, c, dmaps, g, shape = ctx.saved
+        h, n = x.shape
         out = np.empty_like(x)
-        _ssim_grad(bd, x, y, _F32(float(g_out) / n), out)
-        return torch.from_numpy(out).permute(1, 2, 0).contiguous().to(g_out.dtype), None
+        _ssim_bwd(dmaps, x, y, c, g, _F32(float(g_out) / (h * n)), out)
+        return torch.from_numpy(out).view(shape).to(g_out.dtype), None
 
 
 def ssim_cpu(pred: Tensor, gt: Tensor) -> Tensor:
