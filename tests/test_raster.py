@@ -330,7 +330,7 @@ def test_spherical_harmonics_match_gsplat_published_formula():
                                atol=2e-6, rtol=0)
 
 
-@pytest.mark.parametrize("h,w", [(37, 29), (64, 48), (5, 3), (1, 1)])
+@pytest.mark.parametrize("h,w", [(37, 29), (64, 48), (150, 20), (5, 3), (1, 1)])
 def test_fused_ssim_matches_torch_ssim_values_and_gradients(h, w):
     """The numba SSIM loss (used by the CPU training benchmark) against the PyTorch definition in
     plantsplat.train.metrics (zero-padded 11x11 Gaussian window): value within 1e-6, gradient within
