@@ -7,6 +7,8 @@ Gaussians and peak memory, plus machine info (timings on a shared machine are no
 
     .venv/bin/python benchmarks/bench_train.py                       # the issue's setting (slow)
     .venv/bin/python benchmarks/bench_train.py --frames 36 --width 180 --height 320 --iterations 300
+    .venv/bin/python benchmarks/bench_train.py --seeds 0 --modes object --skip-romi --frames 36 \
+        --width 270 --height 480 --iterations 600 --out /tmp/train_quick.json   # training speed only
 
 Writes benchmarks/results/train.json (atomically).
 """
@@ -66,6 +68,9 @@ def run_modes(ws: Workspace, iterations: int | None, max_res: int | None, modes=
                                         "train_cpu_seconds", "resolution", "iterations", "n_test_views")}
         res[mode]["peak_rss_mb_process"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
         res[mode]["wall_seconds_incl_eval"] = time.perf_counter() - t0
+        res[mode]["s_per_iteration"] = s["train_seconds"] / max(1, s["iterations"])
+        res[mode]["cpu_s_per_iteration"] = s["train_cpu_seconds"] / max(1, s["iterations"])
+        res[mode]["loadavg_after"] = os.getloadavg()
         if mode == "full":
             res["pbr"] = m["pbr"]
         print(mode, {k: res[mode][k] for k in ("composite", "foreground", "n_gaussians", "train_seconds")}, flush=True)
@@ -82,6 +87,8 @@ def main() -> None:
     ap.add_argument("--max-resolution", type=int, default=None)
     ap.add_argument("--romi-size", type=int, default=448)
     ap.add_argument("--skip-romi", action="store_true")
+    ap.add_argument("--modes", nargs="+", choices=("object", "full"), default=["object", "full"],
+                    help="which models to train (PBR needs full)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "train.json")
     args = ap.parse_args()
     setup_logging()
@@ -96,7 +103,7 @@ def main() -> None:
             generate(SynthConfig(out=cap, seed=seed, frames=args.frames, width=args.width, height=args.height,
                                  force=True))
             ws = synth_workspace(cap, tmp / f"ws{seed}")
-            doc["synth"][str(seed)] = run_modes(ws, args.iterations, args.max_resolution)
+            doc["synth"][str(seed)] = run_modes(ws, args.iterations, args.max_resolution, tuple(args.modes))
             doc["machine_end"] = machine_info()
             write_json_atomic(args.out, doc)
         ds = Path(os.environ.get("PLANTSPLAT_DATASETS", REPO.parent / "shared" / "datasets"))
@@ -105,13 +112,15 @@ def main() -> None:
             from plantsplat.train.romi import workspace_from_romi
 
             ws = workspace_from_romi(romi, tmp / "romi", size=args.romi_size)
-            doc["romi"] = run_modes(ws, args.iterations, args.max_resolution)
+            doc["romi"] = run_modes(ws, args.iterations, args.max_resolution, tuple(args.modes))
         elif not args.skip_romi:
             doc["romi"] = f"skipped: {romi} not found"
         # means over seeds
         summ = {}
         for key in ("object", "full", "pbr"):
-            rows = [r[key] for r in doc["synth"].values()]
+            rows = [r[key] for r in doc["synth"].values() if key in r]
+            if not rows:
+                continue
             if key == "pbr":
                 summ[key] = {f"{k}": float(np.mean([r[k] for r in rows if r[k] is not None] or [np.nan]))
                              for k in ("psnr", "ssim", "lpips")}
@@ -122,6 +131,7 @@ def main() -> None:
                 "foreground": {k: float(np.mean([r["foreground"][k] for r in rows if r["foreground"][k] is not None]
                                                 or [np.nan])) for k in ("psnr", "ssim", "lpips")},
                 **{k: float(np.mean([r[k] for r in rows])) for k in ("train_seconds", "train_cpu_seconds",
+                                                                      "s_per_iteration", "cpu_s_per_iteration",
                                                                       "n_gaussians", "render_fps")},
             }
         doc["synth_mean"] = summ
