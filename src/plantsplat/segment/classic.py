@@ -194,7 +194,7 @@ class ClassicSegmenter:
         ctx.info["plant_locator"] = "3d" if ctx.hull_points is not None else "2d"
         self._smalls = smalls
         self._small_rgb = small_rgb
-        self._background = None
+        self._bg_learned = False
         if ctx.hull_points is not None and s.learn_background:
             self._learn_background(ctx)
         return ctx
@@ -336,7 +336,7 @@ class ClassicSegmenter:
         n_in = gaussian_filter(n_in.reshape(shape), 1.0).ravel()
         self._bg_ring = gaussian_filter(n_ring.reshape(shape), 1.0).ravel() > s.background_ratio * n_in
         self._bg_pot = gaussian_filter(n_pot.reshape(shape), 1.0).ravel() > s.background_ratio * n_in
-        self._background = True
+        self._bg_learned = True
         ctx.info["background_colour_bins"] = int(self._bg_ring.sum())
         ctx.info["pot_colour_bins"] = int(self._bg_pot.sum())
 
@@ -360,12 +360,12 @@ class ClassicSegmenter:
         r = (0.87 * ctx.voxel + s.roi_margin_cm * (1.5 if loose else 1.0)) * self._Ks[0, 0] / max(depth, 1e-3)
         return cv2.dilate(roi, _disk(np.ceil(r))).astype(bool)
 
-    def _pot_mask(self, i: int, ctx: CaptureContext, W: int, H: int, small: bool = False) -> np.ndarray:
+    def _pot_mask(self, i: int, ctx: CaptureContext, W: int, H: int) -> np.ndarray:
         """Pixels of frame ``i`` where the (plant-coloured) pot is seen, not plant in front of it: bool ``[H, W]``."""
         import cv2
 
         T = ctx.roi_poses[i]
-        sil = geo.pot_silhouette(ctx.pot, T, self._Ks if small else ctx.K, (W, H))
+        sil = geo.pot_silhouette(ctx.pot, T, ctx.K, (W, H))
         if not sil.any():
             return sil
         # plant voxels nearer to the camera than the pot's axis (at their height) hide the pot
@@ -432,7 +432,7 @@ class ClassicSegmenter:
         s = self.s
         H, W = rgb.shape[:2]
         strong, weak, pale, red_only = plant_colour_masks(rgb, s.colour, with_red=True)
-        if self._background is not None:
+        if self._bg_learned:
             # background colours inside the plant region are left out where they form blobs (objects seen through
             # gaps, the pot); thin runs of them (petioles, peduncles, leaf edges against a similar wall) are kept
             q = _colour_bins(rgb)
@@ -449,7 +449,7 @@ class ClassicSegmenter:
             roi_small = self._roi_2d(i)
             locator = "2d"
         roi = cv2.resize(roi_small.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
-        if ctx.pot is not None and locator != "2d" and self._background is None:
+        if ctx.pot is not None and locator != "2d" and not self._bg_learned:
             roi &= ~self._pot_mask(i, ctx, W, H)
         # seeds: strong colour over a k x k neighbourhood (k = 2 px at 480, 3 px at 960): noisy pixels of green
         # walls seed nothing
