@@ -235,12 +235,7 @@ def extract_and_match(
     directions = directions or {}
     matcher = choose_matcher(opts, len(names), len(directions))
     t = time.perf_counter()
-    mopts = pycolmap.FeatureMatchingOptions()
-    mopts.num_threads = opts.num_threads
-    verif = pycolmap.TwoViewGeometryOptions()
-    verif.ransac.random_seed = opts.seed
-    verif.ransac.max_num_trials = opts.ransac_max_trials
-    verif.detect_watermark = False
+    mopts, verif = _matching_options(opts)
     n = len(names)
     if matcher == "guided":
         pairs = guided_pairs(names, directions, opts)
@@ -346,18 +341,26 @@ def n_threads_env(n: int) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", str(n))
 
 
-def match_pairs(db: Path, work_dir: Path, pairs: list[tuple[str, str]], opts: SfmOptions, tag: str) -> None:
-    """Match and verify extra image ``pairs`` into ``db`` (pairs matched before are skipped by COLMAP)."""
+def _matching_options(opts: SfmOptions):
+    """pycolmap's matching and two-view verification options for ``opts`` (threads, seeded RANSAC)."""
     import pycolmap
 
-    pair_file = work_dir / f"pairs_{tag}.txt"
-    pair_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
     mopts = pycolmap.FeatureMatchingOptions()
     mopts.num_threads = opts.num_threads
     verif = pycolmap.TwoViewGeometryOptions()
     verif.ransac.random_seed = opts.seed
     verif.ransac.max_num_trials = opts.ransac_max_trials
     verif.detect_watermark = False
+    return mopts, verif
+
+
+def match_pairs(db: Path, work_dir: Path, pairs: list[tuple[str, str]], opts: SfmOptions, tag: str) -> None:
+    """Match and verify extra image ``pairs`` into ``db`` (pairs matched before are skipped by COLMAP)."""
+    import pycolmap
+
+    pair_file = work_dir / f"pairs_{tag}.txt"
+    pair_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
+    mopts, verif = _matching_options(opts)
     pairing = pycolmap.ImportedPairingOptions()
     pairing.match_list_path = str(pair_file)
     with colmap_logging(opts.verbose):
