@@ -629,16 +629,23 @@ def fill_orbit_poses(
 
 def find_pot(
     occ: np.ndarray, origin: np.ndarray, vs: float, min_radius: float = 3.0, min_fill: float = 0.7,
-    max_base: float = 4.0, min_height: float = 4.0
+    max_base: float = 4.0, max_foot: float = 8.0, min_height: float = 4.0, rim_drop: float = 0.85, max_taper: float = 0.15,
+    fat: float = 0.87
 ) -> dict[str, Any] | None:
     """A plant-coloured pot in a carved grid: the solid, disc-sectioned block standing on the ground.
 
     ``occ``: bool ``[X, Y, Z]`` voxels (cube frame, cm, z up, ground at z = 0), ``origin`` the centre of
     voxel ``(0, 0, 0)``, ``vs`` the voxel size. Leaves and stems are thin: their horizontal sections are
-    sparse. A pot's sections are filled discs. Going up from the lowest occupied section (which must lie
-    within ``max_base`` cm of the ground), sections whose largest piece is a disc (equivalent radius at
-    least ``min_radius`` cm, at least ``min_fill`` of that disc occupied) are pot; the first section that
-    is not, or that is much narrower than the widest pot section below it (the crown), ends it. Returns ``{"axis": [x, y], "z": (bottom, rim), "r": (r_bottom, r_rim)}`` (a
+    sparse. A pot's sections are filled discs. The occupied column must start within ``max_base`` cm of
+    the ground; the pot starts at its first section whose largest piece is a disc (equivalent radius at
+    least ``min_radius`` cm, at least ``min_fill`` of that disc occupied), at most ``max_foot`` cm up
+    (thinner sections below it are the pot's foot, narrowed by shadows and carving). Going up, the
+    first section that is not a disc, is off the section below by more than half its radius (another
+    object) or is narrower than ``rim_drop`` times the widest pot section below it (the crown above the
+    rim) ends it. The frustum's radius is
+    fitted to the lower 60 % of the pot (leaves and fruit hang around its upper part), its taper (radius
+    gained per cm of height) limited to ``max_taper``, and made ``fat`` voxels thinner (carving views
+    are dilated). Returns ``{"axis": [x, y], "z": (bottom, rim), "r": (r_bottom, r_rim)}`` (a
     frustum, cm) or None when there is no such block at least ``min_height`` cm high (pots that are not
     plant-coloured leave no block: nothing to remove).
 
@@ -652,6 +659,7 @@ def find_pot(
     X, Y, Z = occ.shape
     zs = origin[2] + np.arange(Z) * vs
     rows = []
+    seen = False  # an occupied section above the ground
     for k in range(Z):
         sl = occ[:, :, k]
         if zs[k] <= -vs:  # below the ground: carving spill (shadows, table), not the pot
@@ -659,9 +667,12 @@ def find_pot(
         if not sl.any():
             if rows:
                 break
+            if seen:
+                return None  # a gap in the column below any pot section
             continue
-        if not rows and zs[k] - vs / 2 > max_base:
+        if not seen and zs[k] - vs / 2 > max_base:
             return None
+        seen = True
         lab, n = ndimage.label(sl)
         sizes = ndimage.sum_labels(np.ones_like(lab), lab, index=np.arange(1, n + 1))
         big = lab == 1 + int(np.argmax(sizes))
@@ -671,8 +682,15 @@ def find_pot(
         gi, gj = np.meshgrid(np.arange(X), np.arange(Y), indexing="ij")
         disc = (gi - c[0]) ** 2 + (gj - c[1]) ** 2 <= r_eq**2
         fill = float((big & disc).sum() / max(disc.sum(), 1))
-        if r_eq * vs < min_radius or fill < min_fill or (rows and r_eq * vs < 0.7 * max(r[3] for r in rows)):
-            break  # not a filled disc, or much narrower than the pot below: the plant's crown
+        disc_like = r_eq * vs >= min_radius and fill >= min_fill
+        if not rows and not disc_like:
+            if zs[k] - vs / 2 > max_foot:
+                return None  # a thin column standing on the ground (stems), no pot
+            continue  # the pot's foot, thinned by shadows and carving
+        if not disc_like or (rows and r_eq * vs < rim_drop * max(r[3] for r in rows)):
+            break  # not a filled disc, or narrower than the pot below: the plant's crown
+        if rows and np.hypot(origin[0] + c[0] * vs - rows[-1][1], origin[1] + c[1] * vs - rows[-1][2]) > 0.5 * rows[-1][3]:
+            break  # a different object at this height (fruit hanging beside the column), not the pot's next section
         rows.append((zs[k], origin[0] + c[0] * vs, origin[1] + c[1] * vs, r_eq * vs))
     if not rows:
         return None
@@ -680,11 +698,18 @@ def find_pot(
     z0, z1 = a[0, 0] - vs / 2, a[-1, 0] + vs / 2
     if z1 - z0 < min_height:
         return None
-    if len(a) >= 3:
-        slope, icpt = np.polyfit(a[:, 0], a[:, 3], 1)
-        r0, r1 = slope * z0 + icpt, slope * z1 + icpt
+    # the radius comes from the lower part of the pot (foliage and fruit hang around its upper part and fatten
+    # the hull there), leaving out the foot narrowed near the ground, with the taper of common pots at most
+    low = a[a[:, 0] <= z0 + 0.6 * (z1 - z0)]
+    low = low[int(np.argmax(low[:, 3] >= 0.8 * low[:, 3].max())):]
+    if len(low) >= 3:
+        slope, icpt = np.polyfit(low[:, 0], low[:, 3], 1)
+        slope = float(np.clip(slope, 0.0, max_taper))
+        icpt = float(np.mean(low[:, 3] - slope * low[:, 0]))
     else:
-        r0 = r1 = float(a[:, 3].mean())
+        slope, icpt = 0.0, float(low[:, 3].mean())
+    # the hull is about a voxel fatter than the pot (views are dilated before carving)
+    r0, r1 = slope * z0 + icpt - fat * vs, slope * z1 + icpt - fat * vs
     # the pot stands on the ground; its frustum reaches a little below it (pose and carving errors)
     return {"axis": [float(np.median(a[:, 1])), float(np.median(a[:, 2]))], "z": (float(min(z0, -1.5 * vs)), float(z1)),
             "r": (float(max(r0, 0.5)), float(max(r1, 0.5)))}
@@ -725,7 +750,8 @@ def orbit_outliers(poses: list[np.ndarray | None], centre: np.ndarray, factor: f
     """Frames whose pose disagrees with the orbit through their neighbours (e.g. a flipped one-marker pose).
 
     Each posed frame is predicted from its nearest posed frame on either side or from the two nearest
-    on one side, whichever pair is closer (at most ``window`` frames away) with :func:`fill_orbit_poses`. The
+    on one side, whichever pair is closer (at most ``window`` frames away; farther for a frame with no
+    posed frame that near) with :func:`fill_orbit_poses`. The
     frame that differs most from its prediction, by more than ``factor`` times the median difference
     (and at least ``min_cm`` cm / ``min_deg`` degrees, both grown with the distance to the
     neighbours), is dropped, and the search repeats (at most a fifth of the frames). Returns the
@@ -743,17 +769,21 @@ def orbit_outliers(poses: list[np.ndarray | None], centre: np.ndarray, factor: f
         have = [i for i in range(len(poses)) if poses[i] is not None]
         rows = []
         for k, i in enumerate(have):
-            left = [j for j in have[max(0, k - 2):k] if i - j <= window]
-            right = [j for j in have[k + 1:k + 3] if j - i <= window]
-            pairs = ([(left[-1], right[0])] if left and right else []) + ([tuple(left)] if len(left) == 2 else []) \
-                + ([tuple(right)] if len(right) == 2 else [])
+            pairs: list[tuple[int, ...]] = []
+            for reach in (window, len(poses)):  # an isolated frame (often one marker) is checked against farther ones
+                left = [j for j in have[max(0, k - 2):k] if i - j <= reach]
+                right = [j for j in have[k + 1:k + 3] if j - i <= reach]
+                pairs = ([(left[-1], right[0])] if left and right else []) + ([tuple(left)] if len(left) == 2 else []) \
+                    + ([tuple(right)] if len(right) == 2 else [])
+                if pairs:
+                    break
             if not pairs:
                 continue
             a, b = min(pairs, key=lambda ab: max(abs(i - ab[0]), abs(i - ab[1])))  # the closest neighbours
             lo, hi = min(a, b, i), max(a, b, i)
             sub: list[np.ndarray | None] = [None] * (hi - lo + 1)
             sub[a - lo], sub[b - lo] = poses[a], poses[b]
-            pred = fill_orbit_poses(sub, centre, max_extrapolate=window)[0][i - lo]
+            pred = fill_orbit_poses(sub, centre, max_extrapolate=hi - lo)[0][i - lo]
             if pred is None:
                 continue
             ci, cp = np.linalg.inv(poses[i]), np.linalg.inv(pred)
