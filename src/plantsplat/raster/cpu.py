@@ -1,25 +1,34 @@
 """CPU backend: tile-parallel numba kernels for compositing, with a hand-written backward pass.
 
-Projection and SH colours are vectorised PyTorch (:mod:`plantsplat.raster.projection`, autograd
-differentiates them); this module composites the projected 2D Gaussians, which is where almost all
-the time goes. The steps, all in float32:
+Projection and SH colours have their own numba kernels (:mod:`plantsplat.raster.cpu_projection`,
+:mod:`plantsplat.raster.sh_cpu`); this module composites the projected 2D Gaussians, which is where
+most of the time goes. The steps, all in float32:
 
-1. ``_bin``: tile boxes from the screen radii (as gsplat, parallel over Gaussians), visible
-   Gaussians sorted once by a 64-bit (depth, index) key with numpy's integer sort, then a counting
-   sort into per-tile lists, so each tile's list is front to back.
-2. ``_forward_render`` / ``_forward_train``: parallel over workers, each taking every
+1. ``_records``: one 64-byte row per Gaussian with everything the tile kernels read (mean, conic,
+   opacity, colour, depth, and the extent of the ellipse outside which alpha < 1/255), so a
+   tile-list entry costs one cache line rather than one in each of six arrays.
+2. ``_bin``: tile boxes (gsplat's box from the screen radii, less the tiles the alpha >= 1/255
+   ellipse's extent misses), visible Gaussians sorted once by a 64-bit (depth, index) key with
+   numpy's integer sort, then a counting sort into per-tile lists, so each tile's list is front to
+   back.
+3. ``_forward_render`` / ``_forward_train``: parallel over workers, each taking every
    ``n_workers``-th non-empty tile from a list sorted by work (empty tiles are skipped entirely);
-   within a tile, one Gaussian at a time in depth order, vectorised over 8-pixel column blocks: the
-   tile's pixels are stored block by block (``p = (block * ts + row) * 8 + lane``), so the rows
-   and column blocks a Gaussian's screen radius reaches are contiguous runs of whole vectors. A
-   tile stops once every pixel's transmittance has reached the stop threshold. The train variant
-   also saves per pixel the final transmittance and the list position where the pixel stopped.
-3. ``_backward``: the same tiles back to front, recovering each Gaussian's transmittance by division;
-   gradients are written per (tile, Gaussian) intersection (no atomics, no races, deterministic)
-   and summed per Gaussian afterwards (``_reduce``).
+   within a tile, the list's records are gathered 64 at a time into a small buffer (independent
+   loads, so their cache misses overlap), then composited one Gaussian at a time in depth order,
+   vectorised over 8-pixel column blocks: the tile's pixels are stored block by block
+   (``p = (block * ts + row) * 8 + lane``), and in each block only the rows the Gaussian's
+   alpha >= 1/255 ellipse reaches there are visited (``_block_rows``: exact, slightly widened), as
+   contiguous runs of whole vectors. A tile stops once every pixel's transmittance has reached the
+   stop threshold. The train variant also saves per pixel the final transmittance and the list
+   position where the pixel stopped.
+4. ``_backward``: the same tiles and rows back to front, recovering each Gaussian's transmittance by
+   division; gradients are written per (tile, Gaussian) intersection (no atomics, no races,
+   deterministic) and summed per Gaussian afterwards (``_reduce``).
 
-Under ``torch.no_grad()`` (or when no input needs a gradient) only ``_bin`` and ``_forward_render`` run
-and nothing is kept.
+The culling only skips pixels where alpha < 1/255, which the compositing rule skips anyway, so the
+images and gradients are those of the reference (gsplat's rules); tests check the culling region
+against brute force. Under ``torch.no_grad()`` (or when no input needs a gradient) only ``_bin``
+and ``_forward_render`` run and nothing is kept.
 """
 
 from __future__ import annotations
@@ -52,6 +61,10 @@ _EXP_C = (_ONE, _F32(-0.9999997019767761), _F32(0.4999932646751404), _F32(-0.166
           _F32(0.04145379737019539), _F32(-0.007908405736088753), _F32(0.0009540405590087175))
 _TWO = _F32(2.0)
 _NEVER = _F32(2.0**30)  # larger than any tile-list position (float32-exact)
+_FOUR = _F32(4.0)
+_BIG = _F32(1e30)
+_NREC = 16  # floats per Gaussian record (_records): one 64-byte cache line
+_CH = 64  # records gathered at a time from a tile list (_gather)
 
 
 @njit(inline="always", fastmath=_FM, cache=True)
@@ -78,33 +91,116 @@ def _exp_neg(s):  # pragma: no cover - numba
 
 
 @njit(inline="always", cache=True)
-def _span(m, r, origin, ts):  # pragma: no cover - numba
-    """Tile-local pixel range [lo, hi) whose centres lie within r + 0.05 of m along one axis.
+def _floor_in(x, lo, hi):  # pragma: no cover - numba
+    """floor(x) clamped to the ints [lo, hi], for any float32 x, without a libm call."""
+    y = min(max(x, _F32(lo - 1)), _F32(hi + 1))
+    i = int(y)
+    i -= 1 if _F32(i) > y else 0
+    return min(max(i, lo), hi)
 
-    Beyond the screen radius r (>= extent * sqrt(cov_ii), with extent = sqrt(2 ln(255 opacity)))
-    the Mahalanobis distance alone makes alpha < 1/255, so those pixels can be skipped exactly.
+
+@njit(inline="always", cache=True)
+def _span(m, r, ts):  # pragma: no cover - numba
+    """Tile-local pixel range [lo, hi) (clamped to [0, ts]) whose centres i + 0.5 lie in [m - r, m + r]."""
+    return -_floor_in(r + _HALF - m, -ts, 0), _floor_in(m + r - _HALF, -1, ts - 1) + 1
+
+
+@njit(inline="always", fastmath=_FM, cache=True)
+def _block_rows(mx, my, blk, xt0, sl, Q, S, r0, r1, ts):  # pragma: no cover - numba
+    """Rows [lo, hi) within [r0, r1) that the Gaussian's level ellipse reaches in one 8-column block.
+
+    The ellipse ``sigma <= s`` (tile-local centre mx, my; see :func:`_records`) meets the block's
+    columns for dx = mx - x in [u0, u1]. For a fixed dx its dy = my - y range is
+    ``sl dx -+ sqrt(S - Q dx^2)``; the upper end is concave in dx with its maximum at the ellipse's
+    top point dx = xt0 and the lower end mirrors it (bottom point -xt0), so clamping those points to
+    [u0, u1] gives the exact dy range over the block. Row centres are widened by 0.01 px.
     """
-    lo = min(max(math.ceil(m - _F32(r) - _F32(0.55)) - origin, 0.0), ts)
-    hi = min(max(math.floor(m + _F32(r) - _F32(0.45)) - origin + 1.0, 0.0), ts)
-    return int(lo), int(hi)
+    u1 = mx - (_F32(blk * _LANES) + _HALF)
+    u0 = u1 - _F32(_LANES - 1)
+    xt = min(max(xt0, u0), u1)
+    xb = min(max(-xt0, u0), u1)
+    dyh = sl * xt + math.sqrt(max(S - xt * xt * Q, _ZERO))
+    dyl = sl * xb - math.sqrt(max(S - xb * xb * Q, _ZERO))
+    lo = max(-_floor_in(dyh + _F32(0.51) - my, -ts, 0), r0)
+    hi = min(_floor_in(my - dyl - _F32(0.49), -1, ts - 1) + 1, r1)
+    return lo, hi
+
+
+@njit(parallel=True, fastmath=_FM, cache=True)
+def _records(means2d, conics, colors, opac, depths, radii, rec):  # pragma: no cover - numba
+    """One 64-byte row per Gaussian with everything the tile kernels read, so that a tile list costs one
+    cache line per entry (instead of one in each of six arrays):
+
+    0-1 mean x, y; 2-4 conic a/2, b, c/2; 5 opacity; 6-8 colour; 9 depth; 10-11 half extents X, Y of
+    the ellipse outside which alpha < 1/255 (never more than the screen radii); 12-15 the block-row
+    culling constants of :func:`_block_rows` (top point dx, dy-centre slope, Q, S).
+
+    The level is s = ln(255 opacity), widened by 1e-3 plus 2e-6 times the size of sigma's terms on
+    the ellipse (float32 rounding of sigma in the kernels), so every pixel the kernels could give
+    alpha >= 1/255 lies inside. Degenerate conics fall back to the screen radii and no row culling.
+    """
+    for g in prange(means2d.shape[0]):
+        ha = _HALF * conics[g, 0]
+        cb = conics[g, 1]
+        hc = _HALF * conics[g, 2]
+        o = opac[g]
+        rec[g, 0] = means2d[g, 0]
+        rec[g, 1] = means2d[g, 1]
+        rec[g, 2] = ha
+        rec[g, 3] = cb
+        rec[g, 4] = hc
+        rec[g, 5] = o
+        rec[g, 6] = colors[g, 0]
+        rec[g, 7] = colors[g, 1]
+        rec[g, 8] = colors[g, 2]
+        rec[g, 9] = depths[g]
+        D = _FOUR * ha * hc - cb * cb  # determinant of the conic
+        s = math.log(max(o * _F32(255.0), _ONE))
+        rx = _F32(radii[g, 0])
+        ry = _F32(radii[g, 1])
+        if D > _ZERO and ha > _ZERO and hc > _ZERO and s > _ZERO:
+            X = math.sqrt(_FOUR * s * hc / D)
+            Y = math.sqrt(_FOUR * s * ha / D)
+            size = (ha + _HALF * abs(cb)) * X * X + (hc + _HALF * abs(cb)) * Y * Y
+            s2 = s + _F32(1e-3) + _F32(2e-6) * size
+            X = math.sqrt(_FOUR * s2 * hc / D) + _F32(1e-3)
+            Y = math.sqrt(_FOUR * s2 * ha / D) + _F32(1e-3)
+            rec[g, 10] = min(X, rx)
+            rec[g, 11] = min(Y, ry)
+            rec[g, 12] = -cb / (_TWO * ha) * Y
+            rec[g, 13] = -cb / (_TWO * hc)
+            rec[g, 14] = D / (_FOUR * hc * hc)
+            rec[g, 15] = s2 / hc
+        else:
+            rec[g, 10] = rx
+            rec[g, 11] = ry
+            rec[g, 12] = _ZERO
+            rec[g, 13] = _ZERO
+            rec[g, 14] = _ZERO
+            rec[g, 15] = _BIG
 
 
 @njit(parallel=True, cache=True)
-def _boxes(means2d, radii, tile_size, tiles_x, tiles_y, box, counts):  # pragma: no cover - numba
-    """Tile box [x0, y0, x1, y1) of every Gaussian from its screen radii (as gsplat) and its tile count."""
+def _boxes(rec, radii, tile_size, tiles_x, tiles_y, box, counts):  # pragma: no cover - numba
+    """Tile box [x0, y0, x1, y1) of every Gaussian and its tile count: gsplat's box from the screen radii,
+    less the tiles none of whose pixel centres lies within the half extents X, Y (alpha < 1/255 there)."""
     ts = _F32(tile_size)
-    for g in prange(means2d.shape[0]):
+    for g in prange(rec.shape[0]):
         counts[g] = 0
         if radii[g, 0] <= 0 or radii[g, 1] <= 0:
             continue
-        mx = means2d[g, 0] / ts
-        my = means2d[g, 1] / ts
+        mx = rec[g, 0]
+        my = rec[g, 1]
         rx = _F32(radii[g, 0]) / ts
         ry = _F32(radii[g, 1]) / ts
-        x0 = int(min(max(math.floor(mx - rx), 0.0), tiles_x))
-        y0 = int(min(max(math.floor(my - ry), 0.0), tiles_y))
-        x1 = int(min(max(math.ceil(mx + rx), 0.0), tiles_x))
-        y1 = int(min(max(math.ceil(my + ry), 0.0), tiles_y))
+        ex = rec[g, 10]
+        ey = rec[g, 11]
+        # gsplat's box, floor(m / ts - r / ts) .. ceil(m / ts + r / ts) as the reference's tile_boxes,
+        # and the tiles with a pixel centre in [m - e, m + e] (0.01 px wider): ceil(a - 1) .. floor(b) + 1
+        x0 = max(_floor_in(mx / ts - rx, 0, tiles_x), -_floor_in(_ONE - (mx - ex + _F32(0.49)) / ts, -tiles_x, 0))
+        y0 = max(_floor_in(my / ts - ry, 0, tiles_y), -_floor_in(_ONE - (my - ey + _F32(0.49)) / ts, -tiles_y, 0))
+        x1 = min(-_floor_in(-(mx / ts + rx), -tiles_x, 0), _floor_in((mx + ex - _F32(0.49)) / ts, -1, tiles_x - 1) + 1)
+        y1 = min(-_floor_in(-(my / ts + ry), -tiles_y, 0), _floor_in((my + ey - _F32(0.49)) / ts, -1, tiles_y - 1) + 1)
         box[g, 0] = x0
         box[g, 1] = y0
         box[g, 2] = x1
@@ -113,47 +209,66 @@ def _boxes(means2d, radii, tile_size, tiles_x, tiles_y, box, counts):  # pragma:
             counts[g] = (x1 - x0) * (y1 - y0)
 
 
-@njit(cache=True)
-def _fill(order, box, counts, tiles_x, n_tiles):  # pragma: no cover - numba
-    """Counting sort of the depth-ordered Gaussians into per-tile lists (each list stays front to back)."""
-    offsets = np.zeros(n_tiles + 1, np.int64)
-    for g in order:
-        for ty in range(box[g, 1], box[g, 3]):
-            for tx in range(box[g, 0], box[g, 2]):
-                offsets[ty * tiles_x + tx + 1] += 1
+@njit(parallel=True, cache=True)
+def _fill(order, box, tiles_x, n_tiles, n_chunks):  # pragma: no cover - numba
+    """Counting sort of the depth-ordered Gaussians into per-tile lists (each list stays front to back).
+
+    The boxes are first copied into depth order (one parallel gather, then both passes read them
+    sequentially); the passes run in parallel over n_chunks consecutive runs of ``order``, a tile's
+    entries from an earlier run placed first, so the lists stay in depth order."""
+    n = order.shape[0]
+    bo = np.empty((n, 4), np.int32)
+    for k in prange(n):
+        g = order[k]
+        for f in range(4):
+            bo[k, f] = box[g, f]
+    cnt = np.zeros((n_chunks, n_tiles), np.int64)
+    for c in prange(n_chunks):
+        for k in range(n * c // n_chunks, n * (c + 1) // n_chunks):
+            for ty in range(bo[k, 1], bo[k, 3]):
+                for tx in range(bo[k, 0], bo[k, 2]):
+                    cnt[c, ty * tiles_x + tx] += 1
+    offsets = np.empty(n_tiles + 1, np.int64)
+    acc = 0
     for t in range(n_tiles):
-        offsets[t + 1] += offsets[t]
-    ids = np.empty(offsets[n_tiles], np.int32)
-    cursor = offsets[:n_tiles].copy()
-    for g in order:
-        for ty in range(box[g, 1], box[g, 3]):
-            row = ty * tiles_x
-            for tx in range(box[g, 0], box[g, 2]):
-                t = row + tx
-                ids[cursor[t]] = g
-                cursor[t] += 1
+        offsets[t] = acc
+        for c in range(n_chunks):
+            m = cnt[c, t]
+            cnt[c, t] = acc  # now chunk c's write cursor in tile t
+            acc += m
+    offsets[n_tiles] = acc
+    ids = np.empty(acc, np.int32)
+    for c in prange(n_chunks):
+        for k in range(n * c // n_chunks, n * (c + 1) // n_chunks):
+            g = order[k]
+            for ty in range(bo[k, 1], bo[k, 3]):
+                row = ty * tiles_x
+                for tx in range(bo[k, 0], bo[k, 2]):
+                    t = row + tx
+                    ids[cnt[c, t]] = g
+                    cnt[c, t] += 1
     return offsets, ids
 
 
-def _bin(means2d, radii, depths, tile_size, tiles_x, tiles_y):
+def _bin(rec, radii, depths, tile_size, tiles_x, tiles_y):
     """Per-tile depth-sorted Gaussian lists: (offsets [n_tiles + 1] int64, ids [n_isects] int32).
 
     Visible Gaussians are sorted once by the 64-bit key (depth bits, index): non-negative float32
     depths order like their bit patterns, and the index breaks ties as a stable sort would. numpy's
     sort of integer keys is several times faster than an argsort of floats.
     """
-    n = means2d.shape[0]
+    n = rec.shape[0]
     box = np.empty((n, 4), np.int32)
     counts = np.empty(n, np.int64)
     if n:
-        _boxes(means2d, radii, tile_size, tiles_x, tiles_y, box, counts)
+        _boxes(rec, radii, tile_size, tiles_x, tiles_y, box, counts)
     vis = np.flatnonzero(counts)
     zv = depths[vis]
     zb = np.where(zv > 0, zv, np.float32(0.0)).view(np.uint32).astype(np.uint64)  # no -0.0
     keys = (zb << np.uint64(32)) | vis.astype(np.uint64)
     keys.sort()
     order = (keys & np.uint64(0xFFFFFFFF)).astype(np.int64)
-    return _fill(order, box, counts, tiles_x, tiles_x * tiles_y)
+    return _fill(order, box, tiles_x, tiles_x * tiles_y, _n_workers())
 
 
 def _tile_schedule(offsets: np.ndarray) -> np.ndarray:
@@ -164,115 +279,142 @@ def _tile_schedule(offsets: np.ndarray) -> np.ndarray:
 
 
 @njit(inline="always", cache=True)
-def _tile_pixels(px, py, T, act, x_0, y_0, ts, width, height, on, off):  # pragma: no cover - numba
-    """Pixel centres of one tile in column-block order p = (cb * ts + row) * 8 + lane (8 columns per
-    block), T = 1, act = on inside the image else off; returns the number of pixels inside."""
-    n_in = 0
-    for p in range(ts * ts):
-        lane = p % _LANES
-        rest = p // _LANES
-        row = rest % ts
-        cb = rest // ts
-        xx = x_0 + cb * _LANES + lane
-        yy = y_0 + row
-        px[p] = _F32(xx) + _HALF
-        py[p] = _F32(yy) + _HALF
-        T[p] = _ONE
-        inside = (xx < width) and (yy < height)
-        act[p] = on if inside else off
-        n_in += 1 if inside else 0
-    return n_in
+def _local_pixels(px, py, ts):  # pragma: no cover - numba
+    """Tile-local pixel centres in column-block order p = (block * ts + row) * 8 + lane."""
+    for cbk in range(ts // _LANES):
+        for row in range(ts):
+            for lane in range(_LANES):
+                p = (cbk * ts + row) * _LANES + lane
+                px[p] = _F32(cbk * _LANES + lane) + _HALF
+                py[p] = _F32(row) + _HALF
+
+
+@njit(inline="always", cache=True)
+def _mark_inside(a, nx, ny, ts, on, off):  # pragma: no cover - numba
+    """a[p] = on for the tile's pixels inside the image (nx columns, ny rows), off for the others."""
+    if nx == ts and ny == ts:
+        a[:] = on
+        return
+    for cbk in range(ts // _LANES):
+        for row in range(ts):
+            for lane in range(_LANES):
+                inside = (cbk * _LANES + lane < nx) and (row < ny)
+                a[(cbk * ts + row) * _LANES + lane] = on if inside else off
+
+
+@njit(inline="always", cache=True)
+def _gather(rec, ids, j, m, buf):  # pragma: no cover - numba
+    """buf[i] = rec[ids[j + i]] for i < m: a short loop of independent loads, so the cache misses of
+    the random rows overlap (the compositing loop between two list entries would serialise them)."""
+    for i in range(m):
+        g = ids[j + i]
+        for f in range(_NREC):
+            buf[i, f] = rec[g, f]
 
 
 @njit(parallel=True, fastmath=_FM, cache=True)
-def _forward_render(means2d, conics, colors, opac, depths, radii, offsets, ids, tiles, n_workers, tile_size,
-                    tiles_x, width, height, out_rgb, out_alpha, out_depth):  # pragma: no cover - numba
-    """Composite every listed tile: colour, alpha and sum z*w, with no bookkeeping for a backward pass."""
+def _forward_render(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, width, height, out_rgb, out_alpha,
+                    out_depth):  # pragma: no cover - numba
+    """Composite every listed tile: colour, alpha and sum z*w, with no bookkeeping for a backward pass.
+
+    A pixel that stops keeps its transmittance negated (T < 0 means stopped; pixels outside the image
+    start at -1), so one array does for both."""
     ts = tile_size
     npix = ts * ts
     n_sched = tiles.shape[0]
     for w in prange(n_workers):
         px = np.empty(npix, np.float32)
         py = np.empty(npix, np.float32)
+        _local_pixels(px, py, ts)
         T = np.empty(npix, np.float32)
         ar = np.zeros(npix, np.float32)
         ag = np.zeros(npix, np.float32)
         ab = np.zeros(npix, np.float32)
         ad = np.zeros(npix, np.float32)
-        act = np.empty(npix, np.float32)  # 1 while the pixel is still compositing, else 0
+        buf = np.empty((_CH, _NREC), np.float32)
         for k in range(w, n_sched, n_workers):
             t = tiles[k]
             tyi = t // tiles_x
             x_0 = (t - tyi * tiles_x) * ts
             y_0 = tyi * ts
-            n_act = _tile_pixels(px, py, T, act, x_0, y_0, ts, width, height, _ONE, _ZERO)
+            nx = min(ts, width - x_0)
+            ny = min(ts, height - y_0)
+            n_act = nx * ny
+            _mark_inside(T, nx, ny, ts, _ONE, -_ONE)
             ar[:] = _ZERO
             ag[:] = _ZERO
             ab[:] = _ZERO
             ad[:] = _ZERO
-            for j in range(offsets[t], offsets[t + 1]):
-                if n_act == 0:
-                    break
-                g = ids[j]
-                r0, r1 = _span(means2d[g, 1], radii[g, 1], y_0, ts)
-                c0, c1 = _span(means2d[g, 0], radii[g, 0], x_0, ts)
-                if r1 <= r0 or c1 <= c0:
-                    continue
-                mx = means2d[g, 0]
-                my = means2d[g, 1]
-                ha = _HALF * conics[g, 0]
-                cb = conics[g, 1]
-                hc = _HALF * conics[g, 2]
-                o = opac[g]
-                cr = colors[g, 0]
-                cg = colors[g, 1]
-                cbl = colors[g, 2]
-                z = depths[g]
-                n_stop = _ZERO  # float32 counter keeps the loop in 8-wide float vectors
-                for blk in range(c0 // _LANES, (c1 - 1) // _LANES + 1):
-                    lo = (blk * ts + r0) * _LANES
-                    ulo = np.uint64(lo)
-                    # rows r0..r1 of one 8-column block; unsigned indices: numba's negative-index
-                    # wraparound would stop vectorisation
-                    for q in range((r1 - r0) * _LANES):
-                        p = ulo + np.uint64(q)
-                        dx = mx - px[p]
-                        dy = my - py[p]
-                        sig = ha * dx * dx + hc * dy * dy + cb * dx * dy
-                        al = min(_ALPHA_MAX, o * _exp_neg(sig))
-                        ok = (act[p] > _ZERO) & (sig >= _ZERO) & (al >= _ALPHA_MIN)
-                        Tp = T[p]
-                        nT = Tp * (_ONE - al)
-                        stop = ok & (nT <= _T_EPS)
-                        use = ok & (nT > _T_EPS)
-                        wt = al * Tp if use else _ZERO
-                        ar[p] += wt * cr
-                        ag[p] += wt * cg
-                        ab[p] += wt * cbl
-                        ad[p] += wt * z
-                        # unconditional stores of selected values: conditional ones become masked
-                        # stores, which are very slow on some x86 cores
-                        T[p] = Tp * ((_ONE - al) if use else _ONE)
-                        act[p] = act[p] * (_ZERO if stop else _ONE)
-                        n_stop += _ONE if stop else _ZERO
-                n_act -= int(n_stop)
-            for p in range(npix):
-                lane = p % _LANES
-                rest = p // _LANES
-                yy = y_0 + rest % ts
-                xx = x_0 + (rest // ts) * _LANES + lane
-                if xx < width and yy < height:
-                    out_rgb[yy, xx, 0] = ar[p]
-                    out_rgb[yy, xx, 1] = ag[p]
-                    out_rgb[yy, xx, 2] = ab[p]
-                    out_alpha[yy, xx] = _ONE - T[p]
-                    out_depth[yy, xx] = ad[p]
+            j = offsets[t]
+            end = offsets[t + 1]
+            while j < end and n_act > 0:
+                m = min(_CH, end - j)
+                _gather(rec, ids, j, m, buf)
+                j += m
+                for i in range(m):
+                    if n_act == 0:
+                        break
+                    mx = buf[i, 0] - _F32(x_0)  # tile-local centre
+                    my = buf[i, 1] - _F32(y_0)
+                    r0, r1 = _span(my, buf[i, 11], ts)
+                    c0, c1 = _span(mx, buf[i, 10], ts)
+                    if r1 <= r0 or c1 <= c0:
+                        continue
+                    ha = buf[i, 2]
+                    cb = buf[i, 3]
+                    hc = buf[i, 4]
+                    o = buf[i, 5]
+                    cr = buf[i, 6]
+                    cg = buf[i, 7]
+                    cbl = buf[i, 8]
+                    z = buf[i, 9]
+                    n_stop = _ZERO  # float32 counter keeps the loop in 8-wide float vectors
+                    for blk in range(c0 // _LANES, (c1 - 1) // _LANES + 1):
+                        b0, b1 = _block_rows(mx, my, blk, buf[i, 12], buf[i, 13], buf[i, 14], buf[i, 15], r0, r1, ts)
+                        if b1 <= b0:
+                            continue
+                        # rows b0..b1 of one 8-column block; unsigned indices: numba's negative-index
+                        # wraparound would stop vectorisation
+                        ulo = np.uint64((blk * ts + b0) * _LANES)
+                        for q in range((b1 - b0) * _LANES):
+                            p = ulo + np.uint64(q)
+                            dx = mx - px[p]
+                            dy = my - py[p]
+                            sig = ha * dx * dx + hc * dy * dy + cb * dx * dy
+                            al = min(_ALPHA_MAX, o * _exp_neg(sig))
+                            Tp = T[p]
+                            ok = (Tp > _ZERO) & (sig >= _ZERO) & (al >= _ALPHA_MIN)
+                            nT = Tp * (_ONE - al)
+                            stop = ok & (nT <= _T_EPS)
+                            use = ok & (nT > _T_EPS)
+                            wt = al * Tp if use else _ZERO
+                            ar[p] += wt * cr
+                            ag[p] += wt * cg
+                            ab[p] += wt * cbl
+                            ad[p] += wt * z
+                            # unconditional stores of plain products: selects nested in the stored
+                            # value become masked stores, which are very slow on some x86 cores
+                            f1 = (_ONE - al) if use else _ONE
+                            sg = -_ONE if stop else _ONE
+                            T[p] = Tp * f1 * sg
+                            n_stop += _ONE if stop else _ZERO
+                    n_act -= int(n_stop)
+            for cbk in range(ts // _LANES):
+                for row in range(ny):
+                    for lane in range(min(_LANES, nx - cbk * _LANES)):
+                        p = (cbk * ts + row) * _LANES + lane
+                        yy = y_0 + row
+                        xx = x_0 + cbk * _LANES + lane
+                        out_rgb[yy, xx, 0] = ar[p]
+                        out_rgb[yy, xx, 1] = ag[p]
+                        out_rgb[yy, xx, 2] = ab[p]
+                        out_alpha[yy, xx] = _ONE - abs(T[p])
+                        out_depth[yy, xx] = ad[p]
 
 
 @njit(parallel=True, fastmath=_FM, cache=True)
-def _forward_train(means2d, conics, colors, opac, depths, radii, offsets, ids, tiles, n_workers, tile_size,
-                   tiles_x, width, height, out_rgb, out_alpha, out_depth, out_T, out_last,
-                   out_n):  # pragma: no cover - numba
+def _forward_train(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, width, height, out_rgb, out_alpha,
+                   out_depth, out_T, out_last, out_n):  # pragma: no cover - numba
     """As :func:`_forward_render`, and saves per pixel the final transmittance and ``last``: the tile-list
     position of the Gaussian at which the pixel stopped (or the list length), so that exactly the
     Gaussians before ``last`` with alpha >= 1/255 were composited; out_n[w]: the number of
@@ -283,6 +425,7 @@ def _forward_train(means2d, conics, colors, opac, depths, radii, offsets, ids, t
     for w in prange(n_workers):
         px = np.empty(npix, np.float32)
         py = np.empty(npix, np.float32)
+        _local_pixels(px, py, ts)
         T = np.empty(npix, np.float32)
         ar = np.zeros(npix, np.float32)
         ag = np.zeros(npix, np.float32)
@@ -292,83 +435,96 @@ def _forward_train(means2d, conics, colors, opac, depths, radii, offsets, ids, t
         # outside the image (one array for both, and min() rather than a conditional store, keep
         # the loop vectorised)
         act = np.empty(npix, np.float32)
+        buf = np.empty((_CH, _NREC), np.float32)
         n_pairs = 0.0
         for k in range(w, n_sched, n_workers):
             t = tiles[k]
             tyi = t // tiles_x
             x_0 = (t - tyi * tiles_x) * ts
             y_0 = tyi * ts
+            nx = min(ts, width - x_0)
+            ny = min(ts, height - y_0)
+            n_act = nx * ny
             start = offsets[t]
-            n_act = _tile_pixels(px, py, T, act, x_0, y_0, ts, width, height, _NEVER, -_ONE)
+            end = offsets[t + 1]
+            _mark_inside(act, nx, ny, ts, _NEVER, -_ONE)
+            T[:] = _ONE
             ar[:] = _ZERO
             ag[:] = _ZERO
             ab[:] = _ZERO
             ad[:] = _ZERO
-            for j in range(start, offsets[t + 1]):
-                if n_act == 0:
-                    break
-                g = ids[j]
-                r0, r1 = _span(means2d[g, 1], radii[g, 1], y_0, ts)
-                c0, c1 = _span(means2d[g, 0], radii[g, 0], x_0, ts)
-                if r1 <= r0 or c1 <= c0:
-                    continue
-                mx = means2d[g, 0]
-                my = means2d[g, 1]
-                ha = _HALF * conics[g, 0]
-                cb = conics[g, 1]
-                hc = _HALF * conics[g, 2]
-                o = opac[g]
-                cr = colors[g, 0]
-                cg = colors[g, 1]
-                cbl = colors[g, 2]
-                z = depths[g]
-                jl = _F32(j - start)
-                n_stop = _ZERO
-                n_use = _ZERO
-                for blk in range(c0 // _LANES, (c1 - 1) // _LANES + 1):
-                    ulo = np.uint64((blk * ts + r0) * _LANES)
-                    for q in range((r1 - r0) * _LANES):
-                        p = ulo + np.uint64(q)
-                        dx = mx - px[p]
-                        dy = my - py[p]
-                        sig = ha * dx * dx + hc * dy * dy + cb * dx * dy
-                        al = min(_ALPHA_MAX, o * _exp_neg(sig))
-                        ok = (act[p] > jl) & (sig >= _ZERO) & (al >= _ALPHA_MIN)
-                        Tp = T[p]
-                        nT = Tp * (_ONE - al)
-                        stop = ok & (nT <= _T_EPS)
-                        use = ok & (nT > _T_EPS)
-                        wt = al * Tp if use else _ZERO
-                        ar[p] += wt * cr
-                        ag[p] += wt * cg
-                        ab[p] += wt * cbl
-                        ad[p] += wt * z
-                        T[p] = Tp * ((_ONE - al) if use else _ONE)
-                        act[p] = min(act[p], jl if stop else _NEVER)
-                        n_use += _ONE if use else _ZERO
-                        n_stop += _ONE if stop else _ZERO
-                n_act -= int(n_stop)
-                n_pairs += n_use
-            n_list = _F32(offsets[t + 1] - start)
-            for p in range(npix):
-                lane = p % _LANES
-                rest = p // _LANES
-                yy = y_0 + rest % ts
-                xx = x_0 + (rest // ts) * _LANES + lane
-                if xx < width and yy < height:
-                    out_rgb[yy, xx, 0] = ar[p]
-                    out_rgb[yy, xx, 1] = ag[p]
-                    out_rgb[yy, xx, 2] = ab[p]
-                    out_alpha[yy, xx] = _ONE - T[p]
-                    out_depth[yy, xx] = ad[p]
-                    out_T[yy, xx] = T[p]
-                    out_last[yy, xx] = np.int32(min(n_list, act[p]))
+            j = start
+            while j < end and n_act > 0:
+                m = min(_CH, end - j)
+                _gather(rec, ids, j, m, buf)
+                for i in range(m):
+                    if n_act == 0:
+                        break
+                    mx = buf[i, 0] - _F32(x_0)
+                    my = buf[i, 1] - _F32(y_0)
+                    r0, r1 = _span(my, buf[i, 11], ts)
+                    c0, c1 = _span(mx, buf[i, 10], ts)
+                    if r1 <= r0 or c1 <= c0:
+                        continue
+                    ha = buf[i, 2]
+                    cb = buf[i, 3]
+                    hc = buf[i, 4]
+                    o = buf[i, 5]
+                    cr = buf[i, 6]
+                    cg = buf[i, 7]
+                    cbl = buf[i, 8]
+                    z = buf[i, 9]
+                    jl = _F32(j + i - start)
+                    n_stop = _ZERO
+                    n_use = _ZERO
+                    for blk in range(c0 // _LANES, (c1 - 1) // _LANES + 1):
+                        b0, b1 = _block_rows(mx, my, blk, buf[i, 12], buf[i, 13], buf[i, 14], buf[i, 15], r0, r1, ts)
+                        if b1 <= b0:
+                            continue
+                        ulo = np.uint64((blk * ts + b0) * _LANES)
+                        for q in range((b1 - b0) * _LANES):
+                            p = ulo + np.uint64(q)
+                            dx = mx - px[p]
+                            dy = my - py[p]
+                            sig = ha * dx * dx + hc * dy * dy + cb * dx * dy
+                            al = min(_ALPHA_MAX, o * _exp_neg(sig))
+                            ok = (act[p] > jl) & (sig >= _ZERO) & (al >= _ALPHA_MIN)
+                            Tp = T[p]
+                            nT = Tp * (_ONE - al)
+                            stop = ok & (nT <= _T_EPS)
+                            use = ok & (nT > _T_EPS)
+                            wt = al * Tp if use else _ZERO
+                            ar[p] += wt * cr
+                            ag[p] += wt * cg
+                            ab[p] += wt * cbl
+                            ad[p] += wt * z
+                            T[p] = Tp * ((_ONE - al) if use else _ONE)
+                            act[p] = min(act[p], jl if stop else _NEVER)
+                            n_use += _ONE if use else _ZERO
+                            n_stop += _ONE if stop else _ZERO
+                    n_act -= int(n_stop)
+                    n_pairs += n_use
+                j += m
+            n_list = _F32(end - start)
+            for cbk in range(ts // _LANES):
+                for row in range(ny):
+                    for lane in range(min(_LANES, nx - cbk * _LANES)):
+                        p = (cbk * ts + row) * _LANES + lane
+                        yy = y_0 + row
+                        xx = x_0 + cbk * _LANES + lane
+                        out_rgb[yy, xx, 0] = ar[p]
+                        out_rgb[yy, xx, 1] = ag[p]
+                        out_rgb[yy, xx, 2] = ab[p]
+                        out_alpha[yy, xx] = _ONE - T[p]
+                        out_depth[yy, xx] = ad[p]
+                        out_T[yy, xx] = T[p]
+                        out_last[yy, xx] = np.int32(min(n_list, act[p]))
         out_n[w] = n_pairs
 
 
 @njit(parallel=True, fastmath=_FM, cache=True)
-def _backward(means2d, conics, colors, opac, depths, radii, offsets, ids, tiles, n_workers, tile_size, tiles_x,
-              width, height, T_final, n_last, g_rgb, g_alpha, g_depth, out_grad):  # pragma: no cover
+def _backward(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, width, height, T_final, n_last, g_rgb,
+              g_alpha, g_depth, out_grad):  # pragma: no cover - numba
     """Back-to-front pass; writes d loss / d (2D Gaussian parameters) per intersection into out_grad
     (rows of intersections that touch no pixel are left as they are: zero)."""
     ts = tile_size
@@ -377,6 +533,7 @@ def _backward(means2d, conics, colors, opac, depths, radii, offsets, ids, tiles,
     for w in prange(n_workers):
         px = np.empty(npix, np.float32)
         py = np.empty(npix, np.float32)
+        _local_pixels(px, py, ts)
         T = np.empty(npix, np.float32)
         Q = np.empty(npix, np.float32)  # sum over later Gaussians of q_j w_j
         gat = np.empty(npix, np.float32)  # dL/dalpha * T_final
@@ -385,107 +542,116 @@ def _backward(means2d, conics, colors, opac, depths, radii, offsets, ids, tiles,
         gb = np.empty(npix, np.float32)
         gd = np.empty(npix, np.float32)
         lastp = np.empty(npix, np.float32)
+        buf = np.empty((_CH, _NREC), np.float32)
         for k in range(w, n_sched, n_workers):
             t = tiles[k]
             tyi = t // tiles_x
             x_0 = (t - tyi * tiles_x) * ts
             y_0 = tyi * ts
+            nx = min(ts, width - x_0)
+            ny = min(ts, height - y_0)
             start = offsets[t]
+            if nx < ts or ny < ts:  # pixels outside the image take no part
+                T[:] = _ONE
+                lastp[:] = _ZERO
+                gat[:] = _ZERO
+                gr[:] = _ZERO
+                gg[:] = _ZERO
+                gb[:] = _ZERO
+                gd[:] = _ZERO
+            Q[:] = _ZERO
             max_last = 0
-            for p in range(npix):
-                lane = p % _LANES
-                rest = p // _LANES
-                yy = y_0 + rest % ts
-                xx = x_0 + (rest // ts) * _LANES + lane
-                px[p] = _F32(xx) + _HALF
-                py[p] = _F32(yy) + _HALF
-                Q[p] = _ZERO
-                if xx < width and yy < height:
-                    T[p] = T_final[yy, xx]
-                    lastp[p] = _F32(n_last[yy, xx])
-                    gat[p] = g_alpha[yy, xx] * T_final[yy, xx]
-                    gr[p] = g_rgb[yy, xx, 0]
-                    gg[p] = g_rgb[yy, xx, 1]
-                    gb[p] = g_rgb[yy, xx, 2]
-                    gd[p] = g_depth[yy, xx]
-                    max_last = max(max_last, n_last[yy, xx])
-                else:
-                    T[p] = _ONE
-                    lastp[p] = _ZERO
-                    gat[p] = _ZERO
-                    gr[p] = _ZERO
-                    gg[p] = _ZERO
-                    gb[p] = _ZERO
-                    gd[p] = _ZERO
-            for jl64 in range(max_last - 1, -1, -1):
-                j = start + jl64
-                g = ids[j]
-                r0, r1 = _span(means2d[g, 1], radii[g, 1], y_0, ts)
-                c0, c1 = _span(means2d[g, 0], radii[g, 0], x_0, ts)
-                if r1 <= r0 or c1 <= c0:
-                    continue
-                jl = _F32(jl64)
-                mx = means2d[g, 0]
-                my = means2d[g, 1]
-                ca = conics[g, 0]
-                cb = conics[g, 1]
-                cc = conics[g, 2]
-                o = opac[g]
-                cr = colors[g, 0]
-                cg = colors[g, 1]
-                cbl = colors[g, 2]
-                z = depths[g]
-                s_dx = _ZERO  # sums of dL/dsigma times dx, dy, dx^2, dx dy, dy^2
-                s_dy = _ZERO
-                s_xx = _ZERO
-                s_xy = _ZERO
-                s_yy = _ZERO
-                s_o = _ZERO
-                s_r = _ZERO
-                s_g = _ZERO
-                s_b = _ZERO
-                s_z = _ZERO
-                for blk in range(c0 // _LANES, (c1 - 1) // _LANES + 1):
-                    ulo = np.uint64((blk * ts + r0) * _LANES)
-                    for qq in range((r1 - r0) * _LANES):
-                        p = ulo + np.uint64(qq)
-                        dx = mx - px[p]
-                        dy = my - py[p]
-                        sig = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                        e = _exp_neg(sig)
-                        v = o * e
-                        al = min(_ALPHA_MAX, v)
-                        ok = (jl < lastp[p]) & (sig >= _ZERO) & (al >= _ALPHA_MIN)
-                        inv = _ONE / (_ONE - al)
-                        Tp = T[p]
-                        Ti = Tp * inv
-                        wt = al * Ti if ok else _ZERO
-                        q = gr[p] * cr + gg[p] * cg + gb[p] * cbl + gd[p] * z
-                        dlda = Ti * q - (Q[p] - gat[p]) * inv
-                        dlda = dlda if (ok & (v <= _ALPHA_MAX)) else _ZERO
-                        dls = -v * dlda  # d loss / d sigma
-                        s_r += wt * gr[p]
-                        s_g += wt * gg[p]
-                        s_b += wt * gb[p]
-                        s_z += wt * gd[p]
-                        s_o += e * dlda
-                        s_dx += dls * dx
-                        s_dy += dls * dy
-                        s_xx += dls * dx * dx
-                        s_xy += dls * dx * dy
-                        s_yy += dls * dy * dy
-                        Q[p] += q * wt
-                        T[p] = Tp * (inv if ok else _ONE)
-                out_grad[j, 0] = ca * s_dx + cb * s_dy
-                out_grad[j, 1] = cb * s_dx + cc * s_dy
-                out_grad[j, 2] = _HALF * s_xx
-                out_grad[j, 3] = s_xy
-                out_grad[j, 4] = _HALF * s_yy
-                out_grad[j, 5] = s_o
-                out_grad[j, 6] = s_r
-                out_grad[j, 7] = s_g
-                out_grad[j, 8] = s_b
-                out_grad[j, 9] = s_z
+            for cbk in range(ts // _LANES):
+                for row in range(ny):
+                    for lane in range(min(_LANES, nx - cbk * _LANES)):
+                        p = (cbk * ts + row) * _LANES + lane
+                        yy = y_0 + row
+                        xx = x_0 + cbk * _LANES + lane
+                        T[p] = T_final[yy, xx]
+                        lastp[p] = _F32(n_last[yy, xx])
+                        gat[p] = g_alpha[yy, xx] * T_final[yy, xx]
+                        gr[p] = g_rgb[yy, xx, 0]
+                        gg[p] = g_rgb[yy, xx, 1]
+                        gb[p] = g_rgb[yy, xx, 2]
+                        gd[p] = g_depth[yy, xx]
+                        max_last = max(max_last, n_last[yy, xx])
+            jhi = start + max_last
+            while jhi > start:
+                m = min(_CH, jhi - start)
+                jlo = jhi - m
+                _gather(rec, ids, jlo, m, buf)
+                for i in range(m - 1, -1, -1):
+                    j = jlo + i
+                    mx = buf[i, 0] - _F32(x_0)
+                    my = buf[i, 1] - _F32(y_0)
+                    r0, r1 = _span(my, buf[i, 11], ts)
+                    c0, c1 = _span(mx, buf[i, 10], ts)
+                    if r1 <= r0 or c1 <= c0:
+                        continue
+                    jl = _F32(j - start)
+                    ha = buf[i, 2]
+                    cb = buf[i, 3]
+                    hc = buf[i, 4]
+                    o = buf[i, 5]
+                    cr = buf[i, 6]
+                    cg = buf[i, 7]
+                    cbl = buf[i, 8]
+                    z = buf[i, 9]
+                    s_dx = _ZERO  # sums of dL/dsigma times dx, dy, dx^2, dx dy, dy^2
+                    s_dy = _ZERO
+                    s_xx = _ZERO
+                    s_xy = _ZERO
+                    s_yy = _ZERO
+                    s_o = _ZERO
+                    s_r = _ZERO
+                    s_g = _ZERO
+                    s_b = _ZERO
+                    s_z = _ZERO
+                    for blk in range(c0 // _LANES, (c1 - 1) // _LANES + 1):
+                        b0, b1 = _block_rows(mx, my, blk, buf[i, 12], buf[i, 13], buf[i, 14], buf[i, 15], r0, r1, ts)
+                        if b1 <= b0:
+                            continue
+                        ulo = np.uint64((blk * ts + b0) * _LANES)
+                        for qq in range((b1 - b0) * _LANES):
+                            p = ulo + np.uint64(qq)
+                            dx = mx - px[p]
+                            dy = my - py[p]
+                            sig = ha * dx * dx + hc * dy * dy + cb * dx * dy  # as in the forward kernels
+                            e = _exp_neg(sig)
+                            v = o * e
+                            al = min(_ALPHA_MAX, v)
+                            ok = (jl < lastp[p]) & (sig >= _ZERO) & (al >= _ALPHA_MIN)
+                            inv = _ONE / (_ONE - al)
+                            Tp = T[p]
+                            Ti = Tp * inv
+                            wt = al * Ti if ok else _ZERO
+                            q = gr[p] * cr + gg[p] * cg + gb[p] * cbl + gd[p] * z
+                            dlda = Ti * q - (Q[p] - gat[p]) * inv
+                            dlda = dlda if (ok & (v <= _ALPHA_MAX)) else _ZERO
+                            dls = -v * dlda  # d loss / d sigma
+                            s_r += wt * gr[p]
+                            s_g += wt * gg[p]
+                            s_b += wt * gb[p]
+                            s_z += wt * gd[p]
+                            s_o += e * dlda
+                            s_dx += dls * dx
+                            s_dy += dls * dy
+                            s_xx += dls * dx * dx
+                            s_xy += dls * dx * dy
+                            s_yy += dls * dy * dy
+                            Q[p] += q * wt
+                            T[p] = Tp * (inv if ok else _ONE)
+                    out_grad[j, 0] = _TWO * ha * s_dx + cb * s_dy
+                    out_grad[j, 1] = cb * s_dx + _TWO * hc * s_dy
+                    out_grad[j, 2] = _HALF * s_xx
+                    out_grad[j, 3] = s_xy
+                    out_grad[j, 4] = _HALF * s_yy
+                    out_grad[j, 5] = s_o
+                    out_grad[j, 6] = s_r
+                    out_grad[j, 7] = s_g
+                    out_grad[j, 8] = s_b
+                    out_grad[j, 9] = s_z
+                jhi = jlo
 
 
 @njit(cache=True)
@@ -510,13 +676,14 @@ def _np32(t: Tensor) -> np.ndarray:
 def _prepare(means2d, conics, colors, opacities, depths, radii, width, height, tile_size):
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
-    m2 = _np32(means2d)  # [N, 2]
     r2 = np.ascontiguousarray(radii.detach().to(torch.int32).numpy())  # [N, 2]
     z = _np32(depths)  # [N]
-    offsets, ids = _bin(m2, r2, z, tile_size, tiles_x, tiles_y)
+    rec = np.empty((r2.shape[0], _NREC), np.float32)  # [N, 16]
+    if r2.shape[0]:
+        _records(_np32(means2d), _np32(conics), _np32(colors), _np32(opacities), z, r2, rec)
+    offsets, ids = _bin(rec, r2, z, tile_size, tiles_x, tiles_y)
     tiles = _tile_schedule(offsets)
-    arrays = (m2, _np32(conics), _np32(colors), _np32(opacities), z, r2)
-    return arrays, offsets, ids, tiles, tiles_x
+    return (rec,), offsets, ids, tiles, tiles_x
 
 
 def _render(arrays, offsets, ids, tiles, tiles_x, width, height, tile_size, save: bool, count: bool = False):
