@@ -27,6 +27,7 @@ Example:
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import torch
@@ -101,7 +102,8 @@ def resolve_backend(backend: str = "auto") -> str:
     return backend
 
 
-def _check_tensor(name: str, t: object, shape: tuple, dtype_float: bool = True) -> None:
+def _check_tensor(name: str, t: object, shape: tuple, dtype_float: bool = True) -> tuple[float, float] | None:
+    """Type, shape, dtype and finiteness checks; returns (min, max) of a non-empty float tensor."""
     if not isinstance(t, Tensor):
         raise RasterInputError(f"rasterize: {name} must be a torch.Tensor, got {type(t).__name__}")
     if t.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape)):
@@ -109,12 +111,22 @@ def _check_tensor(name: str, t: object, shape: tuple, dtype_float: bool = True) 
         raise RasterInputError(f"rasterize: {name} has shape {list(t.shape)}, expected {want}")
     if dtype_float and not t.is_floating_point():
         raise RasterInputError(f"rasterize: {name} must be a floating-point tensor, got {t.dtype}")
-    if t.numel() and not bool(torch.isfinite(t.detach()).all()):
-        bad = int((~torch.isfinite(t.detach())).sum())
-        raise RasterInputError(
-            f"rasterize: {name} has {bad} NaN/Inf value(s); training diverged or the model file is "
-            "corrupt: lower the learning rate or restore the last good checkpoint"
-        )
+    if not t.numel():
+        return None
+    d = t.detach()
+    if d.is_floating_point():
+        # min and max propagate NaN and show +-Inf: one pass, no [N, ...] bool temporary
+        # (isfinite().all() took 18 ms on [200k, 16, 3] SH coefficients, aminmax 1.4 ms)
+        lo, hi = (float(v) for v in torch.aminmax(d))
+        if math.isfinite(lo) and math.isfinite(hi):
+            return lo, hi
+    elif bool(torch.isfinite(d).all()):
+        return None
+    bad = int((~torch.isfinite(d)).sum())
+    raise RasterInputError(
+        f"rasterize: {name} has {bad} NaN/Inf value(s); training diverged or the model file is "
+        "corrupt: lower the learning rate or restore the last good checkpoint"
+    )
 
 
 def _validate(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, near, far,
@@ -122,8 +134,8 @@ def _validate(means, quats, scales, opacities, colors, viewmat, K, width, height
     _check_tensor("means", means, (None, 3))
     N = means.shape[0]
     _check_tensor("quats", quats, (N, 4))
-    _check_tensor("scales", scales, (N, 3))
-    _check_tensor("opacities", opacities, (N,))
+    s_range = _check_tensor("scales", scales, (N, 3))
+    o_range = _check_tensor("opacities", opacities, (N,))
     if sh_degree is None:
         _check_tensor("colors", colors, (N, 3))
     else:
@@ -146,9 +158,9 @@ def _validate(means, quats, scales, opacities, colors, viewmat, K, width, height
         raise RasterInputError(f"rasterize: need 0 <= near < far, got near={near}, far={far}")
     if not eps2d >= 0.0:
         raise RasterInputError(f"rasterize: eps2d must be >= 0, got {eps2d}")
-    if N and bool((scales.detach() < 0).any()):
+    if s_range is not None and s_range[0] < 0:
         raise RasterInputError("rasterize: scales must be positive (pass exp(log_scales))")
-    if N and bool(((opacities.detach() < 0) | (opacities.detach() > 1)).any()):
+    if o_range is not None and (o_range[0] < 0 or o_range[1] > 1):
         raise RasterInputError("rasterize: opacities must lie in [0, 1] (pass sigmoid(logits))")
     devs = {t.device for t in (means, quats, scales, opacities, colors, viewmat, K)}
     if len(devs) > 1:

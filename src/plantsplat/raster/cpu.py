@@ -11,10 +11,12 @@ most of the time goes. The steps, all in float32:
    ellipse's extent misses), visible Gaussians sorted once by a 64-bit (depth, index) key with
    numpy's integer sort, then a counting sort into per-tile lists, so each tile's list is front to
    back.
-3. ``_forward_render`` / ``_forward_train``: parallel over workers, each taking every
-   ``n_workers``-th non-empty tile from a list sorted by work (empty tiles are skipped entirely);
-   within a tile, the list's records are gathered 64 at a time into a small buffer (independent
-   loads, so their cache misses overlap), then composited one Gaussian at a time in depth order,
+3. ``_forward_render`` / ``_forward_train``: parallel over workers, each taking runs of 8
+   non-empty tiles in raster order from a shared atomic counter (a worker slowed by other load
+   takes fewer; neighbouring tiles share Gaussians and run on the same core); within a tile, the
+   list's records are gathered 64 at a time into a small buffer (independent loads, so their cache
+   misses overlap; the next 64 are prefetched while these composite), then composited one Gaussian
+   at a time in depth order,
    vectorised over 8-pixel column blocks: the tile's pixels are stored block by block
    (``p = (block * ts + row) * 8 + lane``), and in each block only the rows the Gaussian's
    alpha >= 1/255 ellipse reaches there are visited (``_block_rows``: exact, slightly widened), as
@@ -39,10 +41,51 @@ import numba
 import numpy as np
 import torch
 from numba import njit, prange
+from llvmlite import ir as _ir
+from numba import types as _nt
+from numba.core import cgutils as _cg
+from numba.extending import intrinsic
 
 # OpenMP first: the TBB that some wheels bring is too old for numba and would only print a warning
 numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 from torch import Tensor
+
+@intrinsic
+def _prefetch(typingctx, arr, idx):  # pragma: no cover - numba
+    """Ask the CPU to fetch the cache line of arr[idx] (1D array) ahead of use; no bounds check needed
+    (a prefetch never faults)."""
+    if not isinstance(arr, _nt.Array) or arr.ndim != 1 or not isinstance(idx, _nt.Integer):
+        return None
+
+    def codegen(context, builder, signature, args):
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        ptr = _cg.get_item_pointer(context, builder, aryty, ary, [args[1]], wraparound=False)
+        i32 = _ir.IntType(32)
+        fn = _cg.get_or_insert_function(builder.module, _ir.FunctionType(_ir.VoidType(), [ptr.type, i32, i32, i32]),
+                                        "llvm.prefetch.p0")
+        builder.call(fn, [ptr, _ir.Constant(i32, 0), _ir.Constant(i32, 3), _ir.Constant(i32, 1)])  # read, keep
+        return context.get_dummy_value()
+
+    return _nt.void(arr, idx), codegen
+
+
+@intrinsic
+def _fetch_add(typingctx, arr, idx, val):  # pragma: no cover - numba
+    """Atomic ``old = arr[idx]; arr[idx] += val; return old`` on an int64 1D array (the workers' shared
+    tile counter)."""
+    if not isinstance(arr, _nt.Array) or arr.ndim != 1 or arr.dtype != _nt.int64:
+        return None
+
+    def codegen(context, builder, signature, args):
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        ptr = _cg.get_item_pointer(context, builder, aryty, ary, [args[1]], wraparound=False)
+        v = context.cast(builder, args[2], signature.args[2], _nt.int64)
+        return builder.atomic_rmw("add", ptr, v, "monotonic")
+
+    return _nt.int64(arr, idx, val), codegen
+
 
 _F32 = np.float32
 _ZERO = _F32(0.0)
@@ -65,6 +108,7 @@ _FOUR = _F32(4.0)
 _BIG = _F32(1e30)
 _NREC = 16  # floats per Gaussian record (_records): one 64-byte cache line
 _CH = 64  # records gathered at a time from a tile list (_gather)
+_RUN = 8  # tiles a worker takes at a time from the shared counter
 
 
 @njit(inline="always", fastmath=_FM, cache=True)
@@ -272,10 +316,10 @@ def _bin(rec, radii, depths, tile_size, tiles_x, tiles_y):
 
 
 def _tile_schedule(offsets: np.ndarray) -> np.ndarray:
-    """Non-empty tiles, most intersections first (workers take them round-robin)."""
-    counts = np.diff(offsets)  # [n_tiles]
-    nonempty = np.flatnonzero(counts)
-    return nonempty[np.argsort(-counts[nonempty], kind="stable")].astype(np.int64)
+    """Non-empty tiles in raster order. Workers take runs of ``_RUN`` of them from a shared atomic
+    counter (so a worker slowed by other load takes fewer), and neighbouring tiles, which share
+    Gaussians, run one after the other on the same core."""
+    return np.flatnonzero(np.diff(offsets)).astype(np.int64)
 
 
 @njit(inline="always", cache=True)
@@ -314,7 +358,7 @@ def _gather(rec, ids, j, m, buf):  # pragma: no cover - numba
 
 @njit(parallel=True, fastmath=_FM, cache=True)
 def _forward_render(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, width, height, out_rgb, out_alpha,
-                    out_depth):  # pragma: no cover - numba
+                    out_depth, counter):  # pragma: no cover - numba
     """Composite every listed tile: colour, alpha and sum z*w, with no bookkeeping for a backward pass.
 
     A pixel that stops keeps its transmittance negated (T < 0 means stopped; pixels outside the image
@@ -332,7 +376,15 @@ def _forward_render(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, wid
         ab = np.zeros(npix, np.float32)
         ad = np.zeros(npix, np.float32)
         buf = np.empty((_CH, _NREC), np.float32)
-        for k in range(w, n_sched, n_workers):
+        flat = rec.reshape(-1)  # for _prefetch
+        k = 0
+        k_end = 0
+        while True:
+            if k >= k_end:  # next run of tiles
+                k = _fetch_add(counter, 0, _RUN)
+                if k >= n_sched:
+                    break
+                k_end = min(k + _RUN, n_sched)
             t = tiles[k]
             tyi = t // tiles_x
             x_0 = (t - tyi * tiles_x) * ts
@@ -350,6 +402,14 @@ def _forward_render(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, wid
             while j < end and n_act > 0:
                 m = min(_CH, end - j)
                 _gather(rec, ids, j, m, buf)
+                # the next records of this list, or the first of the next tile's, while this chunk composites
+                if j + m < end:
+                    for jj in range(j + m, min(end, j + m + _CH)):
+                        _prefetch(flat, np.int64(ids[jj]) * _NREC)
+                elif k + 1 < k_end:
+                    tn = tiles[k + 1]
+                    for jj in range(offsets[tn], min(offsets[tn + 1], offsets[tn] + _CH)):
+                        _prefetch(flat, np.int64(ids[jj]) * _NREC)
                 j += m
                 for i in range(m):
                     if n_act == 0:
@@ -410,11 +470,12 @@ def _forward_render(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, wid
                         out_rgb[yy, xx, 2] = ab[p]
                         out_alpha[yy, xx] = _ONE - abs(T[p])
                         out_depth[yy, xx] = ad[p]
+            k += 1
 
 
 @njit(parallel=True, fastmath=_FM, cache=True)
 def _forward_train(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, width, height, out_rgb, out_alpha,
-                   out_depth, out_T, out_last, out_n):  # pragma: no cover - numba
+                   out_depth, out_T, out_last, out_n, counter):  # pragma: no cover - numba
     """As :func:`_forward_render`, and saves per pixel the final transmittance and ``last``: the tile-list
     position of the Gaussian at which the pixel stopped (or the list length), so that exactly the
     Gaussians before ``last`` with alpha >= 1/255 were composited; out_n[w]: the number of
@@ -436,8 +497,16 @@ def _forward_train(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, widt
         # the loop vectorised)
         act = np.empty(npix, np.float32)
         buf = np.empty((_CH, _NREC), np.float32)
+        flat = rec.reshape(-1)  # for _prefetch
         n_pairs = 0.0
-        for k in range(w, n_sched, n_workers):
+        k = 0
+        k_end = 0
+        while True:
+            if k >= k_end:  # next run of tiles
+                k = _fetch_add(counter, 0, _RUN)
+                if k >= n_sched:
+                    break
+                k_end = min(k + _RUN, n_sched)
             t = tiles[k]
             tyi = t // tiles_x
             x_0 = (t - tyi * tiles_x) * ts
@@ -457,6 +526,14 @@ def _forward_train(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, widt
             while j < end and n_act > 0:
                 m = min(_CH, end - j)
                 _gather(rec, ids, j, m, buf)
+                # the next records of this list, or the first of the next tile's, while this chunk composites
+                if j + m < end:
+                    for jj in range(j + m, min(end, j + m + _CH)):
+                        _prefetch(flat, np.int64(ids[jj]) * _NREC)
+                elif k + 1 < k_end:
+                    tn = tiles[k + 1]
+                    for jj in range(offsets[tn], min(offsets[tn + 1], offsets[tn] + _CH)):
+                        _prefetch(flat, np.int64(ids[jj]) * _NREC)
                 for i in range(m):
                     if n_act == 0:
                         break
@@ -519,12 +596,13 @@ def _forward_train(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, widt
                         out_depth[yy, xx] = ad[p]
                         out_T[yy, xx] = T[p]
                         out_last[yy, xx] = np.int32(min(n_list, act[p]))
+            k += 1
         out_n[w] = n_pairs
 
 
 @njit(parallel=True, fastmath=_FM, cache=True)
 def _backward(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, width, height, T_final, n_last, g_rgb,
-              g_alpha, g_depth, out_grad):  # pragma: no cover - numba
+              g_alpha, g_depth, out_grad, counter):  # pragma: no cover - numba
     """Back-to-front pass; writes d loss / d (2D Gaussian parameters) per intersection into out_grad
     (rows of intersections that touch no pixel are left as they are: zero)."""
     ts = tile_size
@@ -543,7 +621,15 @@ def _backward(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, width, he
         gd = np.empty(npix, np.float32)
         lastp = np.empty(npix, np.float32)
         buf = np.empty((_CH, _NREC), np.float32)
-        for k in range(w, n_sched, n_workers):
+        flat = rec.reshape(-1)  # for _prefetch
+        k = 0
+        k_end = 0
+        while True:
+            if k >= k_end:  # next run of tiles
+                k = _fetch_add(counter, 0, _RUN)
+                if k >= n_sched:
+                    break
+                k_end = min(k + _RUN, n_sched)
             t = tiles[k]
             tyi = t // tiles_x
             x_0 = (t - tyi * tiles_x) * ts
@@ -580,6 +666,8 @@ def _backward(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, width, he
                 m = min(_CH, jhi - start)
                 jlo = jhi - m
                 _gather(rec, ids, jlo, m, buf)
+                for jj in range(max(start, jlo - _CH), jlo):  # the next (earlier) chunk
+                    _prefetch(flat, np.int64(ids[jj]) * _NREC)
                 for i in range(m - 1, -1, -1):
                     j = jlo + i
                     mx = buf[i, 0] - _F32(x_0)
@@ -652,15 +740,23 @@ def _backward(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, width, he
                     out_grad[j, 8] = s_b
                     out_grad[j, 9] = s_z
                 jhi = jlo
+            k += 1
 
 
 @njit(cache=True)
 def _reduce(ids, grad_isect, n):  # pragma: no cover - numba
-    """Sum per-intersection gradients [M, 10] into per-Gaussian gradients [n, 10]."""
-    out = np.zeros((n, grad_isect.shape[1]), np.float32)
-    for j in range(ids.shape[0]):
+    """Sum per-intersection gradients [M, 10] into per-Gaussian gradients [n, 10] (in list order, so
+    deterministic); the output rows are prefetched 32 intersections ahead, since the random
+    read-modify-writes would otherwise wait on memory one after the other."""
+    nc = grad_isect.shape[1]
+    out = np.zeros((n, nc), np.float32)
+    flat = out.reshape(-1)
+    m = ids.shape[0]
+    for j in range(m):
+        if j + 32 < m:
+            _prefetch(flat, np.int64(ids[j + 32]) * nc)
         g = ids[j]
-        for c in range(grad_isect.shape[1]):
+        for c in range(nc):
             out[g, c] += grad_isect[j, c]
     return out
 
@@ -693,7 +789,7 @@ def _render(arrays, offsets, ids, tiles, tiles_x, width, height, tile_size, save
     if not save:
         if tiles.size:
             _forward_render(*arrays, offsets, ids, tiles, _n_workers(), tile_size, tiles_x, width, height,
-                            rgb, alpha, dsum)
+                            rgb, alpha, dsum, np.zeros(1, np.int64))
         return rgb, alpha, dsum, None, None
     T = np.ones((height, width), np.float32)
     last = np.zeros((height, width), np.int32)
@@ -701,7 +797,7 @@ def _render(arrays, offsets, ids, tiles, tiles_x, width, height, tile_size, save
     n_pairs = np.zeros(nw, np.float64)
     if tiles.size:
         _forward_train(*arrays, offsets, ids, tiles, nw, tile_size, tiles_x, width, height,
-                       rgb, alpha, dsum, T, last, n_pairs)
+                       rgb, alpha, dsum, T, last, n_pairs, np.zeros(1, np.int64))
     if count:  # the number of Gaussian-pixel pairs composited
         return rgb, alpha, dsum, T, last, int(n_pairs.sum())
     return rgb, alpha, dsum, T, last
@@ -727,7 +823,7 @@ class _CompositeCPU(torch.autograd.Function):
         grad_isect = np.zeros((ids.shape[0], _NGRAD), np.float32)
         if tiles.size:
             _backward(*arrays, offsets, ids, tiles, _n_workers(), tile_size, tiles_x, width, height, T, last,
-                      _np32(g_rgb), _np32(g_alpha[..., 0]), _np32(g_depth[..., 0]), grad_isect)
+                      _np32(g_rgb), _np32(g_alpha[..., 0]), _np32(g_depth[..., 0]), grad_isect, np.zeros(1, np.int64))
         g = torch.from_numpy(_reduce(ids, grad_isect, n))  # [N, 10]
         dt = g_rgb.dtype
         return (g[:, 0:2].to(dt), g[:, 2:5].to(dt), g[:, 6:9].to(dt), g[:, 5].to(dt), g[:, 9].to(dt),
