@@ -386,3 +386,37 @@ def test_cube_alignment_recovers_a_shift(synth_capture):
     assert iou(faces2 >= 0, faces >= 0) > 0.9
     # nothing like the cube there: no alignment
     assert geo.align_cube(np.full_like(rgb, 128), off, off_faces) is None
+
+
+def test_guided_filter_matches_windowed_least_squares():
+    # slow reference: in every (2r+1)^2 window fit src ~ a * guide + b by regularised least squares, then average the
+    # (a, b) of all windows covering a pixel (edge windows mirrored, as OpenCV's BORDER_REFLECT)
+    from plantsplat.segment.classic import guided_filter
+
+    rng = np.random.default_rng(0)
+    H, W, r, eps = 9, 11, 2, 1e-2
+    guide = rng.random((H, W)).astype(np.float32)
+    src = (rng.random((H, W)) > 0.5).astype(np.float32)
+    gp = np.pad(guide, r, mode="symmetric")
+    sp = np.pad(src, r, mode="symmetric")
+    A = np.zeros((H, W))
+    B = np.zeros((H, W))
+    for y in range(H):
+        for x in range(W):
+            gi = gp[y:y + 2 * r + 1, x:x + 2 * r + 1].ravel().astype(np.float64)
+            si = sp[y:y + 2 * r + 1, x:x + 2 * r + 1].ravel().astype(np.float64)
+            a = np.cov(gi, si, bias=True)[0, 1] / (gi.var() + eps)
+            A[y, x], B[y, x] = a, si.mean() - a * gi.mean()
+    Ap, Bp = np.pad(A, r, mode="symmetric"), np.pad(B, r, mode="symmetric")
+    ref = np.zeros((H, W))
+    for y in range(H):
+        for x in range(W):
+            ref[y, x] = Ap[y:y + 2 * r + 1, x:x + 2 * r + 1].mean() * guide[y, x] + Bp[y:y + 2 * r + 1, x:x + 2 * r + 1].mean()
+    out = guided_filter(guide, src, r, eps)
+    np.testing.assert_allclose(out, ref, atol=1e-4)
+    # a step edge in the guide keeps a mask's step there
+    g = np.zeros((8, 16), np.float32)
+    g[:, 8:] = 1.0
+    m = np.zeros((8, 16), np.float32)
+    m[:, 7:] = 1.0  # the mask's edge one pixel off the image's
+    assert ((guided_filter(g, m, 2, 1e-3) > 0.5) == (g > 0.5)).all()

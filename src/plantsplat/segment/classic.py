@@ -35,6 +35,7 @@ Example:
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -64,6 +65,9 @@ class ClassicSettings:
     """Voxels along each horizontal side of the visual-hull grid."""
     hull_keep_fraction: float = 0.9
     """A voxel is plant when it falls on plant colour in at least this fraction of the views seeing it."""
+    roi_voxels: int = 100
+    """Voxels along each horizontal side of the finer grid that carves the plant region again (gaps between leaves);
+    at most ``hull_voxels``: no second carving."""
     roi_margin_cm: float = 0.75
     """Margin (cm) around the projected plant hull inside which plant-coloured pixels are accepted."""
     join_gap_cm: float = 3.0
@@ -100,6 +104,10 @@ class ClassicSettings:
     """Width of the band around the plant region whose colours are background, as a fraction of the longer image side."""
     thin_px: float = 3.0
     """Runs of background colour thinner than about twice this (px at 960) are kept (stems, peduncles)."""
+    edge_radius: float = 2.0
+    """Radius (px at 960) of the guided filter that moves the plant mask's outline onto the image's edges; 0 = off."""
+    edge_eps: float = 1e-3
+    """Regulariser of that guided filter (gray levels in [0, 1]): smaller follows weaker edges."""
     background_ratio: float = 1.0
     """A colour is background when it is seen this many times more often around the plant (or on the pot) than inside it."""
 
@@ -135,6 +143,47 @@ def _colour_bins(rgb: np.ndarray) -> np.ndarray:
     return ((ycc[..., 0] >> _YSHIFT).astype(np.int32) * nc + (ycc[..., 1] >> _CSHIFT)) * nc + (ycc[..., 2] >> _CSHIFT)
 
 
+def guided_filter(guide: np.ndarray, src: np.ndarray, radius: int, eps: float) -> np.ndarray:
+    """Edge-preserving smoothing of ``src`` steered by a gray ``guide`` (both float32 ``[H, W]``): the guided filter of
+    He, Sun and Tang (ECCV 2010), a local linear model ``src ~ a * guide + b`` fitted in ``(2 radius + 1)^2`` windows
+    with regulariser ``eps``, computed with OpenCV box filters."""
+    import cv2
+
+    k = (2 * radius + 1, 2 * radius + 1)
+
+    def box(x):
+        return cv2.boxFilter(x, -1, k, borderType=cv2.BORDER_REFLECT)
+
+    mean_i, mean_p = box(guide), box(src)
+    var_i = box(guide * guide) - mean_i * mean_i
+    a = (box(guide * src) - mean_i * mean_p) / (var_i + eps)
+    b = mean_p - a * mean_i
+    return box(a) * guide + box(b)
+
+
+def thread_map(fn, items: list, workers: int | None = None):
+    """``map(fn, items)`` in order on a pool of threads (one per core, at most 4): OpenCV and numpy release the GIL
+    in their heavy loops, so frames are processed side by side. At most ``2 * workers`` results wait unconsumed."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    workers = workers or max(1, min(4, os.cpu_count() or 1))
+    if workers == 1:
+        yield from map(fn, items)
+        return
+    with ThreadPoolExecutor(workers) as ex:
+        pending = []
+        it = iter(items)
+        for x in it:
+            pending.append(ex.submit(fn, x))
+            if len(pending) >= 2 * workers:
+                break
+        for x in it:
+            yield pending.pop(0).result()
+            pending.append(ex.submit(fn, x))
+        for f in pending:
+            yield f.result()
+
+
 def _small_size(w: int, h: int, longest: int) -> tuple[int, int, float]:
     s = min(1.0, longest / max(w, h))
     return max(1, int(round(w * s))), max(1, int(round(h * s))), s
@@ -165,26 +214,37 @@ class ClassicSegmenter:
         red_smalls: list[np.ndarray] = []
         grays: list[np.ndarray] = []
         size = None
-        for p in progress(image_paths, "segment: markers and colours"):
+
+        def one(p: Path):
             rgb = read_image(p)
             h, w = rgb.shape[:2]
-            if size is None:
-                size = (w, h)
-            elif (w, h) != size:
-                from plantsplat.errors import PlantsplatError
-
-                raise PlantsplatError(f"{p}: size {w}x{h} differs from the other frames' {size[0]}x{size[1]}; re-run `plantsplat frames`")
-            dets.append(detect_markers(rgb, s.cube) if s.use_cube else {})
+            det = detect_markers(rgb, s.cube) if s.use_cube else {}
             sw, sh, _ = _small_size(w, h, s.analysis_size)
             half = cv2.resize(rgb, (2 * sw, 2 * sh), interpolation=cv2.INTER_AREA)  # colours at twice the analysis size
             strong, _, _, red = plant_colour_masks(half, s.colour, with_red=True)
-            red_smalls.append(cv2.resize((strong & red).astype(np.uint8) * 255, (sw, sh), interpolation=cv2.INTER_AREA) >= 64)
+            red_small = cv2.resize((strong & red).astype(np.uint8) * 255, (sw, sh), interpolation=cv2.INTER_AREA) >= 64
             small = cv2.resize(strong.astype(np.uint8) * 255, (sw, sh), interpolation=cv2.INTER_AREA) >= 48
-            smalls.append(small)
-            small_rgb.append(cv2.resize(half, (sw, sh), interpolation=cv2.INTER_AREA))
+            gray = None
             if s.feature_size:
                 fw, fh, _ = _small_size(w, h, s.feature_size)
-                grays.append(cv2.resize(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), (fw, fh), interpolation=cv2.INTER_AREA))
+                gray = cv2.resize(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), (fw, fh), interpolation=cv2.INTER_AREA)
+            return p, (w, h), det, small, cv2.resize(half, (sw, sh), interpolation=cv2.INTER_AREA), red_small, gray
+
+        for p, wh, det, small, srgb, red_small, gray in progress(thread_map(one, image_paths),
+                                                                 "segment: markers and colours", total=len(image_paths)):
+            if size is None:
+                size = wh
+            elif wh != size:
+                from plantsplat.errors import PlantsplatError
+
+                raise PlantsplatError(f"{p}: size {wh[0]}x{wh[1]} differs from the other frames' {size[0]}x{size[1]}; "
+                                      "re-run `plantsplat frames`")
+            dets.append(det)
+            smalls.append(small)
+            small_rgb.append(srgb)
+            red_smalls.append(red_small)
+            if gray is not None:
+                grays.append(gray)
         assert size is not None
         ctx = CaptureContext(size=size, detections=dets)
         ctx.info["frames_with_markers"] = int(sum(1 for d in dets if d))
@@ -201,6 +261,7 @@ class ClassicSegmenter:
 
     def _geometry(self, ctx: CaptureContext, smalls: list[np.ndarray], grays: list[np.ndarray]) -> None:
         import cv2
+        from scipy import ndimage
 
         s = self.s
         est = geo.estimate_intrinsics(ctx.detections, ctx.size, s.cube)
@@ -281,14 +342,38 @@ class ClassicSegmenter:
             fruit = rocc & near[:, :, None] & ((zs > -vs) & (zs <= top))[None, None, :] & ~plant
             ctx.info["hull_voxels_fruit"] = int(fruit.sum())
             plant |= fruit
+        else:
+            fruit = np.zeros_like(plant)
         idx = np.argwhere(plant)
         ctx.info.update(orbit_centre=centre.round(3), orbit_radius_cm=round(D, 2), hull_voxel_cm=round(vs, 3),
                         hull_voxels_total=int(occ.sum()), hull_voxels_plant=int(len(idx)))
         if len(idx) == 0:
             log.warning("segment: no plant-coloured volume found around the orbit centre; locating the plant in 2D")
             return
-        pts = origin + idx * vs  # [M, 3]
         pot = geo.find_pot(plant, origin, vs) if s.remove_pot else None
+        if s.roi_voxels > s.hull_voxels:
+            # the plant region is carved again on a finer grid (within the coarse plant and its fruit), so
+            # that gaps between leaves, where the room shows through, leave the region
+            kernel_f = _disk(np.ceil(0.87 * (2 * radius / s.roi_voxels) * Ks[0, 0] / depth))
+            fine_masks = [cv2.dilate(m.astype(np.uint8), kernel_f).astype(bool) if ctx.poses[i] is not None else None
+                          for i, m in enumerate(smalls)]
+            focc, forigin, fvs = geo.visual_hull(fine_masks, ctx.poses, Ks, centre, radius, (-0.05 * D, z_hi),
+                                                 s.roi_voxels, s.hull_keep_fraction)
+            fidx = np.argwhere(focc)
+            fpts = forigin + fidx * fvs
+            cidx = np.clip(np.round((fpts - origin) / vs).astype(np.int64), 0, np.array(plant.shape) - 1)
+            near = ndimage.binary_dilation(plant, iterations=1)
+            fpts = fpts[near[cidx[:, 0], cidx[:, 1], cidx[:, 2]]]
+            if s.fruit_keep_fraction < s.hull_keep_fraction and ctx.info.get("hull_voxels_fruit"):
+                # the fruit hull's voxels (carved with a lower keep fraction) are kept whole, as fine points
+                sub = (np.arange(int(round(vs / fvs))) + 0.5) * (vs / max(int(round(vs / fvs)), 1)) - vs / 2
+                offs = np.stack(np.meshgrid(sub, sub, sub, indexing="ij"), -1).reshape(-1, 3)
+                fr = origin + np.argwhere(fruit) * vs
+                fpts = np.concatenate([fpts, (fr[:, None, :] + offs[None]).reshape(-1, 3)])
+            ctx.info["roi_voxel_cm"] = round(fvs, 3)
+            pts, vs_roi = fpts, fvs
+        else:
+            pts, vs_roi = origin + idx * vs, vs  # [M, 3]
         if pot is not None:
             pts = pts[~geo.pot_inside(pts, pot, margin=1.5 * vs)]  # the hull is about a voxel fatter
             ctx.info["pot"] = {"axis": np.round(pot["axis"], 2).tolist(), "z_cm": np.round(pot["z"], 2).tolist(),
@@ -297,7 +382,7 @@ class ClassicSegmenter:
                      pot["r"][1])
         ctx.pot = pot
         ctx.hull_points = pts
-        ctx.voxel = vs
+        ctx.voxel = vs_roi
         ctx.centre = centre
         self._Ks = Ks
 
@@ -494,6 +579,12 @@ class ClassicSegmenter:
             fill = (st4[:, cv2.CC_STAT_AREA] < s.fill_holes * H * W) & ~border
             fill[0] = False  # label 0 = the plant pixels themselves
             plant |= fill[lab4]
+        if s.edge_radius > 0 and plant.any():
+            # the mask's edges follow the image's: a guided filter of the mask with the frame's gray levels as the
+            # guide, cut at one half, moves the outline onto the leaf edges (motion blur, video compression)
+            r = max(1, int(round(s.edge_radius * max(H, W) / 960)))
+            gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32) * (1.0 / 255.0)
+            plant = guided_filter(gray, plant.astype(np.float32), r, s.edge_eps) > 0.5
         plant_fraction = float(plant.mean())
         cube = np.zeros((H, W), bool)
         pose = ctx.pose_source[i] if ctx.pose_source else "none"
