@@ -523,7 +523,7 @@ class ClassicSegmenter:
             q = _colour_bins(rgb)
             bgc = self._bg_ring[q]
             if ctx.pot is not None and ctx.roi_poses[i] is not None:
-                bgc |= self._bg_pot[q] & geo.pot_silhouette(ctx.pot, ctx.roi_poses[i], ctx.K, (W, H))
+                bgc |= self._bg_pot[q] & self._pot_mask(i, ctx, W, H)  # not where plant hangs in front of it
             bgc = (bgc & (weak | pale)).astype(np.float32)
             k_thin = 2 * max(1, int(round(s.thin_px * max(H, W) / 960))) + 1
             keep = cv2.blur(bgc, (k_thin, k_thin)) < 0.5
