@@ -40,8 +40,18 @@ def demo(out: Path) -> dict:
         "synth_seconds": synth.get("total_s"),
         "target_seconds": 600,
         "traits_vs_truth": evaluation["traits"] if evaluation else None,
+        "image_metrics": _image_metrics(out / "workspace" / "metrics.json"),
         "run_machine": run.get("machine"),
     }
+
+
+def _image_metrics(f: Path) -> dict | None:
+    """The trained model's test-view metrics and training time (the train stage's time includes the evaluation)."""
+    if not f.is_file():
+        return None
+    m = read_json(f)
+    return {k: m.get(k) for k in ("composite", "foreground", "n_gaussians", "train_seconds", "train_cpu_seconds",
+                                  "iterations", "render_fps", "peak_rss_mb", "n_test_views")}
 
 
 def _traits(ws: Path) -> dict | None:
