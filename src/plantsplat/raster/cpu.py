@@ -356,6 +356,19 @@ def _gather(rec, ids, j, m, buf):  # pragma: no cover - numba
             buf[i, f] = rec[g, f]
 
 
+@njit(inline="always", cache=True)
+def _prefetch_next(flat, ids, j, end, tiles, offsets, k, k_end):  # pragma: no cover - numba
+    """Prefetch the records of the next chunk: list entries ``j ..`` of this tile (up to ``end``), or the first
+    ones of tile ``tiles[k]`` when this tile's list is done."""
+    if j < end:
+        for jj in range(j, min(end, j + _CH)):
+            _prefetch(flat, np.int64(ids[jj]) * _NREC)
+    elif k < k_end:
+        tn = tiles[k]
+        for jj in range(offsets[tn], min(offsets[tn + 1], offsets[tn] + _CH)):
+            _prefetch(flat, np.int64(ids[jj]) * _NREC)
+
+
 @njit(parallel=True, fastmath=_FM, cache=True)
 def _forward_render(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, width, height, out_rgb, out_alpha,
                     out_depth, counter):  # pragma: no cover - numba
@@ -403,13 +416,7 @@ def _forward_render(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, wid
                 m = min(_CH, end - j)
                 _gather(rec, ids, j, m, buf)
                 # the next records of this list, or the first of the next tile's, while this chunk composites
-                if j + m < end:
-                    for jj in range(j + m, min(end, j + m + _CH)):
-                        _prefetch(flat, np.int64(ids[jj]) * _NREC)
-                elif k + 1 < k_end:
-                    tn = tiles[k + 1]
-                    for jj in range(offsets[tn], min(offsets[tn + 1], offsets[tn] + _CH)):
-                        _prefetch(flat, np.int64(ids[jj]) * _NREC)
+                _prefetch_next(flat, ids, j + m, end, tiles, offsets, k + 1, k_end)
                 j += m
                 for i in range(m):
                     if n_act == 0:
@@ -527,13 +534,7 @@ def _forward_train(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, widt
                 m = min(_CH, end - j)
                 _gather(rec, ids, j, m, buf)
                 # the next records of this list, or the first of the next tile's, while this chunk composites
-                if j + m < end:
-                    for jj in range(j + m, min(end, j + m + _CH)):
-                        _prefetch(flat, np.int64(ids[jj]) * _NREC)
-                elif k + 1 < k_end:
-                    tn = tiles[k + 1]
-                    for jj in range(offsets[tn], min(offsets[tn + 1], offsets[tn] + _CH)):
-                        _prefetch(flat, np.int64(ids[jj]) * _NREC)
+                _prefetch_next(flat, ids, j + m, end, tiles, offsets, k + 1, k_end)
                 for i in range(m):
                     if n_act == 0:
                         break
