@@ -351,6 +351,7 @@ class ClassicSegmenter:
             log.warning("segment: no plant-coloured volume found around the orbit centre; locating the plant in 2D")
             return
         pot = geo.find_pot(plant, origin, vs) if s.remove_pot else None
+        pts = np.zeros((0, 3))
         if s.roi_voxels > s.hull_voxels:
             # the plant region is carved again on a finer grid (within the coarse plant and its fruit), so
             # that gaps between leaves, where the room shows through, leave the region
@@ -372,7 +373,7 @@ class ClassicSegmenter:
                 fpts = np.concatenate([fpts, (fr[:, None, :] + offs[None]).reshape(-1, 3)])
             ctx.info["roi_voxel_cm"] = round(fvs, 3)
             pts, vs_roi = fpts, fvs
-        else:
+        if s.roi_voxels <= s.hull_voxels or len(pts) == 0:  # no finer carving, or it left nothing: the coarse volume
             pts, vs_roi = origin + idx * vs, vs  # [M, 3]
         if pot is not None:
             pts = pts[~geo.pot_inside(pts, pot, margin=1.5 * vs)]  # the hull is about a voxel fatter
