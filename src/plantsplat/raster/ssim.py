@@ -86,6 +86,14 @@ def _vblur_row(hb, g, i, s0, h, acc):  # pragma: no cover - numba
                 a[q] += gt * src_row[q]
 
 
+@njit(inline="always")
+def _block_span(b, h, r):  # pragma: no cover - numba
+    """Output rows [i0, i1) of block b and the input rows [s0, s1) its window reaches (halo r, clipped)."""
+    i0 = b * _BLOCK
+    i1 = min(h, i0 + _BLOCK)
+    return i0, i1, max(0, i0 - r), min(h, i1 + r)
+
+
 @njit(parallel=True, fastmath=_FM, cache=True, error_model="numpy")
 def _ssim_fwd(x, y, c, g, want_grad, dmaps, partial):  # pragma: no cover - numba
     """SSIM of interleaved images x, y [H, W*c] (c channels): partial[i] = sum of row i's SSIM map;
@@ -98,10 +106,7 @@ def _ssim_fwd(x, y, c, g, want_grad, dmaps, partial):  # pragma: no cover - numb
     r = (g.shape[0] - 1) // 2
     nblk = (h + _BLOCK - 1) // _BLOCK
     for b in prange(nblk):
-        i0 = b * _BLOCK
-        i1 = min(h, i0 + _BLOCK)
-        s0 = max(0, i0 - r)
-        s1 = min(h, i1 + r)
+        i0, i1, s0, s1 = _block_span(b, h, r)
         pad = np.zeros((5, n + 2 * r * c), np.float32)  # borders stay zero (zero padding)
         hb = np.empty((5, s1 - s0, n), np.float32)
         for row in range(s0, s1):
@@ -145,10 +150,7 @@ def _ssim_bwd(dmaps, x, y, c, g, scale, out):  # pragma: no cover - numba
     r = (g.shape[0] - 1) // 2
     nblk = (h + _BLOCK - 1) // _BLOCK
     for b in prange(nblk):
-        i0 = b * _BLOCK
-        i1 = min(h, i0 + _BLOCK)
-        s0 = max(0, i0 - r)
-        s1 = min(h, i1 + r)
+        i0, i1, s0, s1 = _block_span(b, h, r)
         pad = np.zeros((3, n + 2 * r * c), np.float32)
         hb = np.empty((3, s1 - s0, n), np.float32)
         for row in range(s0, s1):
