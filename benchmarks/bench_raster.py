@@ -10,11 +10,12 @@ Cases (each run in its own subprocess so peak memory is per case):
   both recorded: on a shared machine the CPU seconds divided by the thread count estimate the idle
   wall time.
 - ``plant448`` / ``plant896``: one training iteration as OpenSplat's CPU build measured it on the 18
-  views of ``romi_virtual_plant_synthetic`` (RGBA composited over a flat grey), 20k Gaussians
-  sampled on ``ground_truth/VirtualPlant.obj`` (open3d), SH degree 3, no densification,
-  loss 0.8 L1 + 0.2 (1 - SSIM) (SSIM by the fused numba kernels of ``plantsplat.raster.ssim``),
-  Adam step. OpenSplat: 0.062 s and 0.217 s per iteration,
-  peak memory 0.4 and 1.0 GB.
+  views of ``romi_virtual_plant_synthetic`` (its ``*_rgb.png`` frames are opaque, the plant on a
+  near-black background; the render is composited over flat grey), 20k Gaussians
+  sampled on ``ground_truth/VirtualPlant.obj`` (open3d), SH degree 3, no densification: the
+  trainer's own step (``train.model.init_params`` / ``make_optimizers``, ``trainer.render`` and
+  ``trainer.photometric_loss``: loss 0.8 L1 + 0.2 (1 - SSIM) of the render over the background),
+  Adam step. OpenSplat: 0.062 s and 0.217 s per iteration, peak memory 0.4 and 1.0 GB.
 
 Usage::
 
@@ -206,11 +207,10 @@ def run_plant(name: str, points_file: Path, iters: int) -> dict:
     import cv2
     import numpy as np
     import torch
-    from scipy.spatial import cKDTree
 
     from plantsplat.io import read_image
-    from plantsplat.raster import rasterize
-    from plantsplat.raster.ssim import ssim_cpu
+    from plantsplat.train.model import init_params, make_optimizers
+    from plantsplat.train.trainer import photometric_loss, render
 
     size = 448 if name == "plant448" else 896
     rss_base = _peak_gb()
@@ -225,7 +225,7 @@ def run_plant(name: str, points_file: Path, iters: int) -> dict:
         if rgba.shape[1] != size:
             rgba = cv2.resize(rgba, (size, size), interpolation=cv2.INTER_AREA)
         rgba_t = torch.from_numpy(rgba).float() / 255.0
-        gt = rgba_t[..., :3] * rgba_t[..., 3:] + (1 - rgba_t[..., 3:]) * bg  # [H, W, 3] over flat grey
+        gt = rgba_t[..., :3] * rgba_t[..., 3:] + (1 - rgba_t[..., 3:]) * bg  # [H, W, 3] (alpha is 255: as is)
         V = torch.eye(4)
         V[:3, :3] = torch.tensor(meta["rotmat"], dtype=torch.float32)
         V[:3, 3] = torch.tensor(meta["tvec"], dtype=torch.float32)
@@ -234,28 +234,19 @@ def run_plant(name: str, points_file: Path, iters: int) -> dict:
 
     pts = np.load(points_file)
     n = pts.shape[0]
-    d, _ = cKDTree(pts).query(pts, k=4)
-    dist = np.sqrt((d[:, 1:] ** 2).mean(axis=1)).clip(1e-4)
-    means = torch.nn.Parameter(torch.from_numpy(pts))
-    log_scales = torch.nn.Parameter(torch.log(torch.from_numpy(dist).float())[:, None].repeat(1, 3))
-    quats = torch.nn.Parameter(torch.tensor([1.0, 0, 0, 0]).repeat(n, 1))
-    logit_op = torch.nn.Parameter(torch.full((n,), math.log(0.1 / 0.9)))
-    sh = torch.nn.Parameter(torch.zeros(n, 16, 3))
-    opt = torch.optim.Adam([
-        {"params": [means], "lr": 1.6e-4 * 100}, {"params": [log_scales], "lr": 5e-3},
-        {"params": [quats], "lr": 1e-3}, {"params": [logit_op], "lr": 5e-2}, {"params": [sh], "lr": 2.5e-3},
-    ], eps=1e-15)
+    # the trainer's parameters (grey colours: the mesh samples have none) and optimisers
+    params = init_params(pts, np.full((n, 3), 0.5, np.float32), sh_degree=3, init_opacity=0.1)
+    opts = make_optimizers(params, {"means": 1.6e-4 * 100, "scales": 5e-3, "quats": 1e-3, "opacities": 5e-2,
+                                    "sh0": 2.5e-3, "shN": 2.5e-3 / 20})
 
     def step(i):
         gt, V, K = views[i % len(views)]
-        out = rasterize(means, quats, torch.exp(log_scales), torch.sigmoid(logit_op), sh, V, K, size, size,
-                        sh_degree=3, backend="cpu")
-        img = out.color + (1 - out.alpha) * bg
-        # SSIM with the numba kernels (same value and gradient as the PyTorch conv2d version)
-        loss = 0.8 * (img - gt).abs().mean() + 0.2 * (1 - ssim_cpu(img, gt))
-        opt.zero_grad(set_to_none=True)
+        out = render(params, V, K, size, size, 3, "cpu")
+        loss, _ = photometric_loss(out.color, out.alpha, bg, gt, 0.2)
         loss.backward()
-        opt.step()
+        for o in opts.values():
+            o.step()
+            o.zero_grad(set_to_none=True)
         return float(loss.detach())
 
     for i in range(2):

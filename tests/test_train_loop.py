@@ -42,18 +42,18 @@ def trained(synth_capture, tmp_path_factory):
 
     ws = synth_workspace(synth_capture(), tmp_path_factory.mktemp("ws_obj"))
     losses = []
-    orig = trainer.ssim
+    orig = trainer.photometric_loss
 
-    def spy(pred, gt):  # record the L1 part of each step's loss
-        losses.append(float((pred - gt).abs().mean().detach()))
-        return orig(pred, gt)
+    def spy(color, alpha, bg, gt, lam):  # record the L1 part of each step's loss
+        losses.append(float((color + (1 - alpha) * bg - gt).abs().mean().detach()))
+        return orig(color, alpha, bg, gt, lam)
 
-    trainer.ssim = spy
+    trainer.photometric_loss = spy
     try:
         summary = trainer.train_workspace(ws, trainer.TrainConfig(iterations=ITERS, max_resolution=96, num_downscales=0,
                                                                   init_points=4000, seed=0))
     finally:
-        trainer.ssim = orig
+        trainer.photometric_loss = orig
     return ws, summary, losses
 
 

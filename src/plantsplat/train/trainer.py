@@ -99,19 +99,25 @@ def foreground_box(alpha: torch.Tensor, margin_frac: float = 0.08, min_margin: i
     return x0, y0, x1, y1
 
 
-def ssim(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    """SSIM term of the training loss, differentiable with respect to ``pred`` (``[H, W, 3]``).
+def photometric_loss(color: torch.Tensor, alpha: torch.Tensor, bg: torch.Tensor, gt: torch.Tensor,
+                     ssim_lambda: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The training loss of a render (``color`` ``[H, W, 3]``, ``alpha`` ``[H, W, 1]``) composited
+    over ``bg`` ``[3]``: ``(1 - l) L1 + l (1 - SSIM)`` against ``gt``, and the mean squared error
+    (detached, for the progress bar's PSNR).
 
-    On the CPU: the fused numba kernels of :mod:`plantsplat.raster.ssim` (same value and gradient as
-    :func:`plantsplat.train.metrics.ssim` within float32 rounding, tested; 5-10x faster: the PyTorch
-    version took about half of a training step). Elsewhere (CUDA, or a ``gt`` that needs a gradient,
-    which the fused kernels do not give), and for the metrics, the PyTorch definition.
+    On the CPU: the fused numba kernels of :mod:`plantsplat.raster.ssim` (compositing, L1, SSIM and
+    their gradients in two passes; same value and gradients as the PyTorch composition, tested). The
+    PyTorch version took about half of a training step at 896 px, and its elementwise operations
+    alone a fifth. Elsewhere (CUDA, or a ``gt`` that needs a gradient, which the fused kernels do not
+    give): the PyTorch composition with :func:`plantsplat.train.metrics.ssim`.
     """
-    if pred.device.type == "cpu" and gt.device.type == "cpu" and not gt.requires_grad:
-        from plantsplat.raster.ssim import ssim_cpu
+    if color.device.type == "cpu" and gt.device.type == "cpu" and not gt.requires_grad and color.shape[-1] == 3:
+        from plantsplat.raster.ssim import photometric_loss_cpu
 
-        return ssim_cpu(pred, gt)
-    return ssim_torch(pred, gt)
+        return photometric_loss_cpu(color, alpha, bg, gt, ssim_lambda)
+    pred = color + (1.0 - alpha) * bg
+    loss = (1 - ssim_lambda) * (pred - gt).abs().mean() + ssim_lambda * (1 - ssim_torch(pred, gt))
+    return loss, ((pred.detach() - gt.detach()) ** 2).mean()
 
 
 def render(params, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int, sh_degree: int, backend: str):
@@ -290,9 +296,8 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
             except PlantsplatError as exc:  # non-finite parameters: the previous step diverged
                 _diverged(paths, last_good, exc)
             strategy.step_pre_backward(params, optimizers, state, step, out)
-            pred = out.color + (1.0 - out.alpha) * bg  # [h', w', 3]
-            l1 = (pred - gt).abs().mean()
-            loss = (1 - rc.ssim_lambda) * l1 + rc.ssim_lambda * (1 - ssim(pred, gt))
+            # render composited over bg, [h', w', 3], against gt: (1 - l) L1 + l (1 - SSIM)
+            loss, mse = photometric_loss(out.color, out.alpha, bg, gt, rc.ssim_lambda)
             if not torch.isfinite(loss):
                 _diverged(paths, last_good, None)
             loss.backward()
@@ -304,7 +309,7 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
 
             with torch.no_grad():
                 lv = float(loss)
-                pv = float(-10 * torch.log10(((pred - gt) ** 2).mean().clamp_min(1e-10)))
+                pv = float(-10 * torch.log10(mse.clamp_min(1e-10)))
             loss_ema = lv if loss_ema is None else 0.9 * loss_ema + 0.1 * lv
             psnr_ema = pv if psnr_ema is None else 0.9 * psnr_ema + 0.1 * pv
             bar.update(task, completed=step + 1,
