@@ -313,3 +313,40 @@ def test_omp_wait_policy_set_before_torch_loads():
     assert run(code, {**env, "OMP_WAIT_POLICY": "ACTIVE"}) == ["ACTIVE", "True"]
     late = "import os, torch, plantsplat; print(os.environ['OMP_WAIT_POLICY'], plantsplat.omp_wait_policy_note() is None)"
     assert run(late, env) == ["PASSIVE", "False"]
+
+
+def test_visual_hull_keeps_an_object_hidden_from_some_views():
+    """Random initialisation in object mode: a small box beside the orbit's centre, hidden in 2 of 12
+    views by something not in the masks (as the pot hides the cube), still gets initial points; a
+    point masked in none of the views does not."""
+    import cv2
+
+    from plantsplat.train.data import View, visual_hull_points
+
+    K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
+    box = np.array([[x, y, z] for x in (0.6, 1.0) for y in (-0.2, 0.2) for z in (-0.2, 0.2)])  # corners
+    views = []
+    for k in range(12):
+        a = 2 * np.pi * k / 12
+        c = 6.0 * np.array([np.cos(a), np.sin(a), 0.0])
+        fwd = -c / np.linalg.norm(c)
+        right = np.cross(fwd, [0, 0, 1.0])
+        right /= np.linalg.norm(right)
+        down = np.cross(fwd, right)
+        R = np.stack([right, down, fwd])
+        V = np.eye(4)
+        V[:3, :3], V[:3, 3] = R, -R @ c
+        mask = np.zeros((120, 160), np.uint8)
+        mask[:6, :6] = 255  # something else in the masks of every view
+        if k not in (3, 4):  # hidden from these two
+            uv = (box @ R.T + V[:3, 3]) @ K.T
+            uv = uv[:, :2] / uv[:, 2:]
+            cv2.fillConvexPoly(mask, cv2.convexHull(uv.astype(np.int32)), 255)
+        views.append(View(f"v{k}", K, V, 160, 120, mask=mask))
+    center, radius = np.zeros(3), 6.0
+    pts = visual_hull_points(views, center, radius, 300, np.random.default_rng(0))
+    assert len(pts) >= 100
+    lo, hi = box.min(0) - 0.15, box.max(0) + 0.15
+    assert ((pts >= lo) & (pts <= hi)).all(axis=1).mean() > 0.95
+    strict = visual_hull_points(views, center, radius, 300, np.random.default_rng(0), min_inside=1.0)
+    assert len(strict) < len(pts) // 4

@@ -298,12 +298,16 @@ def scene_center_radius(views: list[View]) -> tuple[np.ndarray, float]:
 
 
 def visual_hull_points(views: list[View], center: np.ndarray, radius: float, n: int, rng: np.random.Generator,
-                       dilate_frac: float = 0.01, rounds: int = 30) -> np.ndarray:
+                       dilate_frac: float = 0.01, rounds: int = 30, min_inside: float = 0.8) -> np.ndarray:
     """Up to ``n`` random points ``[M, 3]`` inside the masks' visual hull.
 
     Candidates are drawn on the rays of random mask pixels of random views, at depths within
-    ``radius`` of ``center``, and kept when they fall inside every (slightly dilated) mask that sees
-    them; this finds thin structures (stems) that uniform sampling of a box misses.
+    ``radius`` of ``center``, and kept when they fall inside the (slightly dilated) masks of at least
+    ``min_inside`` of the views that see them; this finds thin structures (stems) that uniform
+    sampling of a box misses. Not every view: the pot, which is not in the masks, hides the cube and
+    hanging fruit from some views, and a strict hull dropped them (the cube was then never
+    reconstructed: foreground PSNR 10.9 dB against 18.5 dB with 0.8, 600 steps on a synthetic capture
+    with true cameras).
     """
     import cv2
 
@@ -329,8 +333,8 @@ def visual_hull_points(views: list[View], center: np.ndarray, radius: float, n: 
             R, t = v.viewmat[:3, :3], v.viewmat[:3, 3]
             world = (cam - t) @ R  # [P, 3]
             seen, inside = mask_votes(world, dil)
-            # seen by most views (cameras circle the object) and inside every mask that sees it
-            keep = (seen >= max(2, int(0.6 * len(dil)))) & (inside == seen)
+            # seen by most views (cameras circle the object) and inside most masks that see it
+            keep = (seen >= max(2, int(0.6 * len(dil)))) & (inside >= min_inside * seen)
             found.append(world[keep])
             total += int(keep.sum())
         if total >= n:
