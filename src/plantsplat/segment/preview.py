@@ -58,10 +58,12 @@ def contact_sheet(
         rgb = read_image(images[k])
         mk = masks[k]
         m = mk if isinstance(mk, np.ndarray) else read_image(mk, mode="gray")
-        ov = overlay(rgb, m > 0, bool(excluded[k]) if excluded is not None else False)
-        h, w = ov.shape[:2]
+        h, w = rgb.shape[:2]
         tw = max(1, round(w * tile_height / h))
-        tile = cv2.resize(ov, (tw, tile_height), interpolation=cv2.INTER_AREA)
+        # overlay at the tile's size (a full-size overlay was most of the sheet's time)
+        small = cv2.resize(rgb, (tw, tile_height), interpolation=cv2.INTER_AREA)
+        m_small = cv2.resize((m > 0).astype(np.uint8) * 255, (tw, tile_height), interpolation=cv2.INTER_AREA) > 127
+        tile = overlay(small, m_small, bool(excluded[k]) if excluded is not None else False)
         text = labels[k] if labels is not None else str(k)
         cv2.rectangle(tile, (0, 0), (tw, 18), (0, 0, 0), -1)
         cv2.putText(tile, text, (4, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1, cv2.LINE_AA)

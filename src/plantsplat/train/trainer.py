@@ -108,10 +108,11 @@ def photometric_loss(color: torch.Tensor, alpha: torch.Tensor, bg: torch.Tensor,
     On the CPU: the fused numba kernels of :mod:`plantsplat.raster.ssim` (compositing, L1, SSIM and
     their gradients in two passes; same value and gradients as the PyTorch composition, tested). The
     PyTorch version took about half of a training step at 896 px, and its elementwise operations
-    alone a fifth. Elsewhere (CUDA, or a ``gt`` that needs a gradient, which the fused kernels do not
-    give): the PyTorch composition with :func:`plantsplat.train.metrics.ssim`.
+    alone a fifth. Elsewhere (CUDA, or a ``gt`` or ``bg`` that needs a gradient, which the fused
+    kernels do not give): the PyTorch composition with :func:`plantsplat.train.metrics.ssim`.
     """
-    if color.device.type == "cpu" and gt.device.type == "cpu" and not gt.requires_grad and color.shape[-1] == 3:
+    if (color.device.type == "cpu" and gt.device.type == "cpu" and not gt.requires_grad and not bg.requires_grad
+            and color.shape[-1] == 3):
         from plantsplat.raster.ssim import photometric_loss_cpu
 
         return photometric_loss_cpu(color, alpha, bg, gt, ssim_lambda)
