@@ -763,7 +763,11 @@ def _reduce(ids, grad_isect, n):  # pragma: no cover - numba
 
 
 def _n_workers() -> int:
-    return max(1, min(numba.get_num_threads(), torch.get_num_threads()))
+    """Parallel workers of the tile kernels: numba's thread count (``NUMBA_NUM_THREADS``), as every
+    other numba kernel here. Not also capped by torch's: the trainer runs torch's own small ops on one
+    thread (``TrainConfig.threads``), and that cap had given training's tile kernels a single worker
+    (on 2 cores the training runs measured the same either way, within noise)."""
+    return max(1, numba.get_num_threads())
 
 
 def _np32(t: Tensor) -> np.ndarray:
