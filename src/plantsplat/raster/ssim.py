@@ -150,21 +150,23 @@ def _fwd(col, alpha, bg, y, g, want_grad, x, dmaps, sums):  # pragma: no cover -
 
 
 @njit(inline="always", fastmath=_FM)
+def _terms(mu, q):  # pragma: no cover - numba
+    """mu_x, mu_y and the four factors of SSIM = (a1 a2) / (b1 b2) at column q of the blurred moments."""
+    mx = mu[0, q]
+    my = mu[1, q]
+    a1 = _F32(2.0) * mx * my + _C1
+    a2 = _F32(2.0) * (mu[4, q] - mx * my) + _C2
+    b1 = mx * mx + my * my + _C1
+    b2 = mu[2, q] + mu[3, q] - mx * mx - my * my + _C2
+    return mx, my, a1, a2, b1, b2
+
+
+@njit(inline="always", fastmath=_FM)
 def _ssim_row(mu):  # pragma: no cover - numba
     """Sum of the SSIM map over one row from its blurred moments mu[0..4]."""
-    m0 = mu[0]
-    m1 = mu[1]
-    m2 = mu[2]
-    m3 = mu[3]
-    m4 = mu[4]
     s_row = _F32(0.0)
     for q in range(mu.shape[1]):
-        mx = m0[q]
-        my = m1[q]
-        a1 = _F32(2.0) * mx * my + _C1
-        a2 = _F32(2.0) * (m4[q] - mx * my) + _C2
-        b1 = mx * mx + my * my + _C1
-        b2 = m2[q] + m3[q] - mx * mx - my * my + _C2
+        _, _, a1, a2, b1, b2 = _terms(mu, q)
         s_row += (a1 * a2) / (b1 * b2)
     return s_row
 
@@ -172,19 +174,9 @@ def _ssim_row(mu):  # pragma: no cover - numba
 @njit(inline="always", fastmath=_FM)
 def _ssim_row_grad(mu, d0, d1, d2):  # pragma: no cover - numba
     """As :func:`_ssim_row`, also writing dS/dmu_x, dS/dE[x^2], dS/dE[x y] into d0, d1, d2."""
-    m0 = mu[0]
-    m1 = mu[1]
-    m2 = mu[2]
-    m3 = mu[3]
-    m4 = mu[4]
     s_row = _F32(0.0)
     for q in range(mu.shape[1]):
-        mx = m0[q]
-        my = m1[q]
-        a1 = _F32(2.0) * mx * my + _C1
-        a2 = _F32(2.0) * (m4[q] - mx * my) + _C2
-        b1 = mx * mx + my * my + _C1
-        b2 = m2[q] + m3[q] - mx * mx - my * my + _C2
+        mx, my, a1, a2, b1, b2 = _terms(mu, q)
         ia1 = _F32(1.0) / a1
         ia2 = _F32(1.0) / a2
         ib1 = _F32(1.0) / b1
