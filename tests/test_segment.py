@@ -182,6 +182,31 @@ def _score(cap: Path, ws: Workspace, frames_info: dict) -> np.ndarray:
     return np.array(out)
 
 
+@pytest.mark.parametrize("small,full", [((135, 240), (540, 960)), ((100, 177), (531, 943)), ((240, 135), (960, 540))])
+def test_crop_box_covers_the_upscaled_region_with_its_margin(small, full):
+    """The per-frame plant masks are computed on the plant region's box: the box must hold every pixel
+    that the region's nearest-neighbour upscale marks, with the margin on each side (clipped to the
+    frame), and be at most a pixel larger; an empty region gives no box."""
+    from plantsplat.segment.classic import _crop_box
+
+    rng = np.random.default_rng(sum(small))
+    h, w = small
+    H, W = full
+    for _ in range(20):
+        roi = np.zeros(small, np.uint8)
+        y, x = rng.integers(0, h), rng.integers(0, w)
+        roi[y:y + rng.integers(1, h // 2), x:x + rng.integers(1, w // 2)] = 1
+        up = cv2.resize(roi, (W, H), interpolation=cv2.INTER_NEAREST)
+        ys, xs = np.nonzero(up)
+        x0, y0, x1, y1 = _crop_box(roi, W, H, 7)
+        lo = (max(0, xs.min() - 7), max(0, ys.min() - 7))
+        hi = (min(W, xs.max() + 1 + 7), min(H, ys.max() + 1 + 7))
+        # covers the region and its margin; at most one pixel more on a side (non-integer scales)
+        assert lo[0] - 1 <= x0 <= lo[0] and lo[1] - 1 <= y0 <= lo[1], ((x0, y0), lo)
+        assert hi[0] <= x1 <= hi[0] + 1 and hi[1] <= y1 <= hi[1] + 1, ((x1, y1), hi)
+    assert _crop_box(np.zeros(small, np.uint8), W, H, 7) is None
+
+
 def test_classic_on_synthetic_capture(synth_capture, tmp_path):
     cap = synth_capture(seed=1, frames=36, width=270, height=480)
     ws = Workspace(tmp_path / "ws")
