@@ -56,6 +56,7 @@ class CubeSpec:
     face_ids: tuple[int, ...] = (0, 1, 2, 3, 4, 5)
     """Marker ids on the faces +x, -x, +y, -y, top, bottom."""
     _by_id: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+    _frames: dict = field(default_factory=dict, init=False, repr=False, compare=False)  # face -> face_frame()
 
     def __post_init__(self):
         if len(self.face_ids) != 6 or len(set(self.face_ids)) != 6:
@@ -68,12 +69,15 @@ class CubeSpec:
         return self._by_id.get(int(marker_id))
 
     def face_frame(self, face: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``(centre, normal, right, up)`` of a face in the cube frame."""
-        n = np.array(_NORMALS[face], dtype=np.float64)
-        up = np.array(_UPS[face], dtype=np.float64)
-        right = np.cross(up, n)
-        centre = np.array([0.0, 0.0, self.size / 2]) + n * self.size / 2
-        return centre, n, right, up
+        """``(centre, normal, right, up)`` of a face in the cube frame (fresh arrays; computed once per face:
+        the cube pose solver asks for them thousands of times per capture)."""
+        if face not in self._frames:
+            n = np.array(_NORMALS[face], dtype=np.float64)
+            up = np.array(_UPS[face], dtype=np.float64)
+            right = np.cross(up, n)
+            centre = np.array([0.0, 0.0, self.size / 2]) + n * self.size / 2
+            self._frames[face] = (centre, n, right, up)
+        return tuple(a.copy() for a in self._frames[face])
 
     def marker_corners(self, marker_id: int) -> np.ndarray:
         """The 4 corners of a marker in the cube frame, ArUco order. ``[4, 3]``."""
