@@ -19,6 +19,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from numba import njit, prange
 
 from plantsplat.cube import CubeSpec, cube_pose
 from plantsplat.log import get_logger
@@ -365,6 +366,39 @@ def orbit_centre(poses: list[np.ndarray | None]) -> np.ndarray | None:
     return np.linalg.solve(A, b)
 
 
+@njit(parallel=True, cache=True)
+def _carve(xyz, P, M, keep, seen, hit):  # pragma: no cover - numba
+    """Per voxel (xyz [3, V] float32), in the views' order: how many views see it (seen) and how many of those
+    have it in their mask (hit), projecting with P [F, 3, 4] into the masks M [F, h, w] (uint8 0/1). From the
+    9th view on, every 4th view, a voxel stops as soon as it can no longer reach the keep fraction (its counts
+    are then final: it is not kept)."""
+    nf = P.shape[0]
+    h = M.shape[1]
+    w = M.shape[2]
+    for vi in prange(xyz.shape[1]):
+        x = xyz[0, vi]
+        y = xyz[1, vi]
+        zc = xyz[2, vi]
+        s = 0
+        ht = 0
+        for step in range(nf):
+            z = P[step, 2, 0] * x + P[step, 2, 1] * y + P[step, 2, 2] * zc + P[step, 2, 3]
+            zs = max(z, np.float32(1e-6))
+            u = np.rint((P[step, 0, 0] * x + P[step, 0, 1] * y + P[step, 0, 2] * zc + P[step, 0, 3]) / zs)
+            v = np.rint((P[step, 1, 0] * x + P[step, 1, 1] * y + P[step, 1, 2] * zc + P[step, 1, 3]) / zs)
+            if z > np.float32(1e-3) and u >= 0 and u < w and v >= 0 and v < h:
+                s += 1
+                ht += M[step, int(v), int(u)]
+            if step >= 8 and step % 4 == 0:
+                remaining = nf - step - 1
+                ok = (ht + remaining) >= keep * (s + remaining)
+                if not ok or (s >= 8 and (s - ht) > (1 - keep) * (s + remaining) + 1):
+                    break
+        seen[vi] = s
+        hit[vi] = ht
+
+
+
 def visual_hull(
     masks: list[np.ndarray | None],
     poses: list[np.ndarray | None],
@@ -388,32 +422,15 @@ def visual_hull(
     gi, gj, gk = np.meshgrid(np.arange(voxels), np.arange(voxels), np.arange(nz), indexing="ij")
     idx = np.stack([gi.ravel(), gj.ravel(), gk.ravel()], 1)  # [V, 3]
     pts = origin + idx * vs  # [V, 3]
-    seen = np.zeros(len(pts), np.int32)
-    hit = np.zeros(len(pts), np.int32)
-    active = np.arange(len(pts))
     order = [i for i in range(len(masks)) if masks[i] is not None and poses[i] is not None]
     order = [order[i] for i in np.random.default_rng(0).permutation(len(order))]
-    xyz = pts.astype(np.float32).T.copy()  # [3, V]: component arithmetic is far faster than [V, 3] @ [3, 3]
-    for step, fi in enumerate(order):
-        m = masks[fi]
-        h, w = m.shape
-        P = (K @ poses[fi][:3]).astype(np.float32)  # [3, 4] projection matrix
-        x, y, zc = xyz[0, active], xyz[1, active], xyz[2, active]
-        z = P[2, 0] * x + P[2, 1] * y + P[2, 2] * zc + P[2, 3]
-        zs = np.maximum(z, 1e-6)
-        u = np.round((P[0, 0] * x + P[0, 1] * y + P[0, 2] * zc + P[0, 3]) / zs).astype(np.int64)
-        v = np.round((P[1, 0] * x + P[1, 1] * y + P[1, 2] * zc + P[1, 3]) / zs).astype(np.int64)
-        inside = (z > 1e-3) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        ai = active[inside]
-        seen[ai] += 1
-        hit[ai] += m[v[inside], u[inside]]
-        if step >= 8 and step % 4 == 0:  # drop voxels that can no longer reach the keep fraction
-            s = seen[active]
-            miss = s - hit[active]
-            remaining = len(order) - step - 1
-            ok = (hit[active] + remaining) >= keep_fraction * (s + remaining)
-            ok &= ~((s >= 8) & (miss > (1 - keep_fraction) * (s + remaining) + 1))
-            active = active[ok]
+    xyz = pts.astype(np.float32).T.copy()  # [3, V]
+    seen = np.zeros(len(pts), np.int32)
+    hit = np.zeros(len(pts), np.int32)
+    if order:
+        P = np.stack([(K @ poses[fi][:3]).astype(np.float32) for fi in order])  # [F, 3, 4] projection matrices
+        M = np.stack([np.asarray(masks[fi], dtype=bool) for fi in order]).view(np.uint8)  # [F, h, w]
+        _carve(xyz, P, M, float(keep_fraction), seen, hit)
     occ = (seen >= 3) & (hit >= keep_fraction * np.maximum(seen, 1))
     return occ.reshape(voxels, voxels, nz), origin, vs
 
