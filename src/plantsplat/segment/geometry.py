@@ -782,6 +782,9 @@ def orbit_outliers(poses: list[np.ndarray | None], centre: np.ndarray, factor: f
     poses = list(poses)
     dropped: list[int] = []
     n_posed = sum(p is not None for p in poses)
+    # a frame's difference from its prediction depends only on its own and its two neighbours' poses, none of
+    # which change while they stay: computed once per (frame, neighbours) over the repeated searches
+    cache: dict[tuple[int, int, int], tuple[float, float] | None] = {}
     while len(dropped) < n_posed // 5:
         have = [i for i in range(len(poses)) if poses[i] is not None]
         rows = []
@@ -797,15 +800,20 @@ def orbit_outliers(poses: list[np.ndarray | None], centre: np.ndarray, factor: f
             if not pairs:
                 continue
             a, b = min(pairs, key=lambda ab: max(abs(i - ab[0]), abs(i - ab[1])))  # the closest neighbours
-            lo, hi = min(a, b, i), max(a, b, i)
-            sub: list[np.ndarray | None] = [None] * (hi - lo + 1)
-            sub[a - lo], sub[b - lo] = poses[a], poses[b]
-            pred = fill_orbit_poses(sub, centre, max_extrapolate=hi - lo)[0][i - lo]
-            if pred is None:
+            if (i, a, b) not in cache:
+                lo, hi = min(a, b, i), max(a, b, i)
+                sub: list[np.ndarray | None] = [None] * (hi - lo + 1)
+                sub[a - lo], sub[b - lo] = poses[a], poses[b]
+                pred = fill_orbit_poses(sub, centre, max_extrapolate=hi - lo)[0][i - lo]
+                if pred is None:
+                    cache[(i, a, b)] = None
+                else:
+                    ci, cp = np.linalg.inv(poses[i]), np.linalg.inv(pred)
+                    cache[(i, a, b)] = (float(np.linalg.norm(ci[:3, 3] - cp[:3, 3])),
+                                        float(np.degrees(Rotation.from_matrix(ci[:3, :3].T @ cp[:3, :3]).magnitude())))
+            if cache[(i, a, b)] is None:
                 continue
-            ci, cp = np.linalg.inv(poses[i]), np.linalg.inv(pred)
-            d = float(np.linalg.norm(ci[:3, 3] - cp[:3, 3]))
-            ang = float(np.degrees(Rotation.from_matrix(ci[:3, :3].T @ cp[:3, :3]).magnitude()))
+            d, ang = cache[(i, a, b)]
             gap = max(abs(i - a), abs(i - b))
             rows.append((i, d, ang, gap))
         if len(rows) < 5:
