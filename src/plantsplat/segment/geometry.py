@@ -18,11 +18,16 @@ from __future__ import annotations
 
 from typing import Any
 
+import numba
 import numpy as np
 from numba import njit, prange
 
 from plantsplat.cube import CubeSpec, cube_pose
 from plantsplat.log import get_logger
+
+# OpenMP first, as the rasterizer's modules: the TBB that some wheels bring is too old for numba and would only
+# print a warning
+numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 
 log = get_logger(__name__)
 
