@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from plantsplat.errors import PlantsplatError, UsageError
-from plantsplat.io import atomic_path, read_image, read_json, write_image_atomic, write_json_atomic
+from plantsplat.io import atomic_path, png_params, read_image, read_json, write_image_atomic, write_json_atomic
 from plantsplat.log import get_logger, progress
 from plantsplat.workspace import Workspace
 
@@ -48,13 +48,11 @@ _CACHE_BYTES = 768 * 2**20
 
 
 def _write_png(path: Path, img: np.ndarray) -> None:
-    """Write a gray or BGR(A) uint8 image as PNG atomically, with fast compression (level 1, run-length strategy:
-    measured ~40 % faster than the default strategy on RGBA frames, and smaller)."""
+    """Write a gray or BGR(A) uint8 image as PNG atomically, with fast compression (:func:`plantsplat.io.png_params`)."""
     import cv2
 
-    params = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
     with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), img, params):
+        if not cv2.imwrite(str(tmp), img, png_params()):
             raise PlantsplatError(f"{path}: could not write image; check the disk space and permissions")
 
 
