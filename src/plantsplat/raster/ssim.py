@@ -3,19 +3,21 @@
 The training loss ``(1 - l) L1 + l (1 - SSIM)`` needs SSIM of the render against the ground truth
 at every step. As separable depthwise ``conv2d`` calls in PyTorch (11x11 Gaussian window, sigma
 1.5, zero padding, the usual ``C1 = 0.01^2``, ``C2 = 0.03^2``) it costs more than rasterizing the
-image on a CPU. Here the five local moments (``x, y, x^2, y^2, x y``) are blurred by two 1-D
-passes, block of rows by block of rows on the interleaved ``[H, W, 3]`` image (no planar copies, no
-full-image moment maps). Each pass evaluates the whole symmetric 11-tap window per output element
-in registers (the taps are 3 floats apart horizontally, a compile-time constant, so the loop over
-the row vectorises; an accumulate-one-tap-at-a-time version was about 3x slower, bound by loads
-and stores). The forward pass also stores ``dS/dmu_x``, ``dS/dE[x^2]`` and ``dS/dE[x y]`` per
-pixel, and the backward pass blurs those three maps with the same (symmetric) window:
+image on a CPU. Here, row by row of the interleaved ``[H, W, 3]`` image, the five local moments
+(``x, y, x^2, y^2, x y``) are blurred vertically straight from the 11 input rows around the output
+row (they stay in cache from one row to the next), then horizontally, then go into the SSIM
+formula: no planar copies and no full-image moment maps. Each 1-D blur evaluates the whole
+symmetric 11-tap window per output element in registers (horizontally the taps are 3 floats apart,
+a compile-time constant, so the loop over the row vectorises); the previous version, which added
+one tap at a time into buffers of whole rows, was about 2x slower, bound by loads and stores. The
+forward pass also stores ``dS/dmu_x``, ``dS/dE[x^2]`` and ``dS/dE[x y]`` per pixel, and the
+backward pass blurs those three maps with the same (symmetric) window:
 
     dSSIM/dx = (G * dS/dmu_x + 2 x G * dS/dE[x^2] + y G * dS/dE[x y]) / (C H W)
 
 :func:`photometric_loss_cpu` fuses the rest of a training step's loss into the same passes: the
-render is composited over the background as its rows are read (``x = colour + (1 - alpha) B``),
-and L1 and the squared error are summed on the way; its backward pass gives the gradients of the
+render is composited over the background in a first pass over the rows (``x = colour + (1 - alpha)
+B``), which also sums L1 and the squared error; its backward pass gives the gradients of the
 colour and the alpha directly. That replaces about ten full-image PyTorch operations per step
 (about a fifth of a step at 896 px).
 
