@@ -403,7 +403,6 @@ def _carve(xyz, P, M, keep, seen, hit):  # pragma: no cover - numba
         hit[vi] = ht
 
 
-
 def visual_hull(
     masks: list[np.ndarray | None],
     poses: list[np.ndarray | None],
