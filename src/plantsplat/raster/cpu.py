@@ -357,6 +357,28 @@ def _gather(rec, ids, j, m, buf):  # pragma: no cover - numba
 
 
 @njit(inline="always", cache=True)
+def _tile_origin(t, tiles_x, ts, width, height):  # pragma: no cover - numba
+    """Pixel origin (x_0, y_0) of tile t and how many of its columns and rows (nx, ny) lie in the image."""
+    tyi = t // tiles_x
+    x_0 = (t - tyi * tiles_x) * ts
+    y_0 = tyi * ts
+    return x_0, y_0, min(ts, width - x_0), min(ts, height - y_0)
+
+
+@njit(inline="always", cache=True)
+def _unpack(buf, i, x_0, y_0, ts):  # pragma: no cover - numba
+    """Record i of a gathered chunk (see :func:`_records`) for a tile at (x_0, y_0): the tile-local centre
+    mx, my; the pixel rows [r0, r1) and columns [c0, c1) its half extents reach; conic a/2, b, c/2; opacity;
+    colour; depth."""
+    mx = buf[i, 0] - _F32(x_0)
+    my = buf[i, 1] - _F32(y_0)
+    r0, r1 = _span(my, buf[i, 11], ts)
+    c0, c1 = _span(mx, buf[i, 10], ts)
+    return (mx, my, r0, r1, c0, c1, buf[i, 2], buf[i, 3], buf[i, 4], buf[i, 5], buf[i, 6], buf[i, 7], buf[i, 8],
+            buf[i, 9])
+
+
+@njit(inline="always", cache=True)
 def _prefetch_next(flat, ids, j, end, tiles, offsets, k, k_end):  # pragma: no cover - numba
     """Prefetch the records of the next chunk: list entries ``j ..`` of this tile (up to ``end``), or the first
     ones of tile ``tiles[k]`` when this tile's list is done."""
@@ -399,11 +421,7 @@ def _forward_render(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, wid
                     break
                 k_end = min(k + _RUN, n_sched)
             t = tiles[k]
-            tyi = t // tiles_x
-            x_0 = (t - tyi * tiles_x) * ts
-            y_0 = tyi * ts
-            nx = min(ts, width - x_0)
-            ny = min(ts, height - y_0)
+            x_0, y_0, nx, ny = _tile_origin(t, tiles_x, ts, width, height)
             n_act = nx * ny
             _mark_inside(T, nx, ny, ts, _ONE, -_ONE)
             ar[:] = _ZERO
@@ -421,20 +439,9 @@ def _forward_render(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, wid
                 for i in range(m):
                     if n_act == 0:
                         break
-                    mx = buf[i, 0] - _F32(x_0)  # tile-local centre
-                    my = buf[i, 1] - _F32(y_0)
-                    r0, r1 = _span(my, buf[i, 11], ts)
-                    c0, c1 = _span(mx, buf[i, 10], ts)
+                    mx, my, r0, r1, c0, c1, ha, cb, hc, o, cr, cg, cbl, z = _unpack(buf, i, x_0, y_0, ts)
                     if r1 <= r0 or c1 <= c0:
                         continue
-                    ha = buf[i, 2]
-                    cb = buf[i, 3]
-                    hc = buf[i, 4]
-                    o = buf[i, 5]
-                    cr = buf[i, 6]
-                    cg = buf[i, 7]
-                    cbl = buf[i, 8]
-                    z = buf[i, 9]
                     n_stop = _ZERO  # float32 counter keeps the loop in 8-wide float vectors
                     for blk in range(c0 // _LANES, (c1 - 1) // _LANES + 1):
                         b0, b1 = _block_rows(mx, my, blk, buf[i, 12], buf[i, 13], buf[i, 14], buf[i, 15], r0, r1, ts)
@@ -515,11 +522,7 @@ def _forward_train(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, widt
                     break
                 k_end = min(k + _RUN, n_sched)
             t = tiles[k]
-            tyi = t // tiles_x
-            x_0 = (t - tyi * tiles_x) * ts
-            y_0 = tyi * ts
-            nx = min(ts, width - x_0)
-            ny = min(ts, height - y_0)
+            x_0, y_0, nx, ny = _tile_origin(t, tiles_x, ts, width, height)
             n_act = nx * ny
             start = offsets[t]
             end = offsets[t + 1]
@@ -538,20 +541,9 @@ def _forward_train(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, widt
                 for i in range(m):
                     if n_act == 0:
                         break
-                    mx = buf[i, 0] - _F32(x_0)
-                    my = buf[i, 1] - _F32(y_0)
-                    r0, r1 = _span(my, buf[i, 11], ts)
-                    c0, c1 = _span(mx, buf[i, 10], ts)
+                    mx, my, r0, r1, c0, c1, ha, cb, hc, o, cr, cg, cbl, z = _unpack(buf, i, x_0, y_0, ts)
                     if r1 <= r0 or c1 <= c0:
                         continue
-                    ha = buf[i, 2]
-                    cb = buf[i, 3]
-                    hc = buf[i, 4]
-                    o = buf[i, 5]
-                    cr = buf[i, 6]
-                    cg = buf[i, 7]
-                    cbl = buf[i, 8]
-                    z = buf[i, 9]
                     jl = _F32(j + i - start)
                     n_stop = _ZERO
                     n_use = _ZERO
@@ -632,11 +624,7 @@ def _backward(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, width, he
                     break
                 k_end = min(k + _RUN, n_sched)
             t = tiles[k]
-            tyi = t // tiles_x
-            x_0 = (t - tyi * tiles_x) * ts
-            y_0 = tyi * ts
-            nx = min(ts, width - x_0)
-            ny = min(ts, height - y_0)
+            x_0, y_0, nx, ny = _tile_origin(t, tiles_x, ts, width, height)
             start = offsets[t]
             if nx < ts or ny < ts:  # pixels outside the image take no part
                 T[:] = _ONE
@@ -671,21 +659,10 @@ def _backward(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, width, he
                     _prefetch(flat, np.int64(ids[jj]) * _NREC)
                 for i in range(m - 1, -1, -1):
                     j = jlo + i
-                    mx = buf[i, 0] - _F32(x_0)
-                    my = buf[i, 1] - _F32(y_0)
-                    r0, r1 = _span(my, buf[i, 11], ts)
-                    c0, c1 = _span(mx, buf[i, 10], ts)
+                    mx, my, r0, r1, c0, c1, ha, cb, hc, o, cr, cg, cbl, z = _unpack(buf, i, x_0, y_0, ts)
                     if r1 <= r0 or c1 <= c0:
                         continue
                     jl = _F32(j - start)
-                    ha = buf[i, 2]
-                    cb = buf[i, 3]
-                    hc = buf[i, 4]
-                    o = buf[i, 5]
-                    cr = buf[i, 6]
-                    cg = buf[i, 7]
-                    cbl = buf[i, 8]
-                    z = buf[i, 9]
                     s_dx = _ZERO  # sums of dL/dsigma times dx, dy, dx^2, dx dy, dy^2
                     s_dy = _ZERO
                     s_xx = _ZERO
