@@ -237,3 +237,53 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     err = capsys.readouterr()
     text = err.out + err.err
     assert "Traceback" not in text and "no trained model" in text
+
+
+def test_occluders_from_sfm_points_resume_and_stay_out_of_the_export(synth_capture, tmp_path, monkeypatch):
+    """With SfM points (here: points of the synthetic scene, pot and platform included) object mode
+    adds occluders; they survive an interrupted run, are stored beside the model and the export
+    holds only the model's own Gaussians."""
+    from plantsplat.train import trainer
+    from plantsplat.train.data import read_ply_points
+    from plantsplat.train.export import export_workspace, read_splat_ply
+    from plantsplat.train.model import load_checkpoint
+
+    cap = synth_capture()
+    ws = synth_workspace(cap, tmp_path / "ws", every=4)
+    pts, cols = read_ply_points(cap / "scene_gt.ply")
+    pick = np.random.default_rng(0).permutation(len(pts))[:3000]
+    from plyfile import PlyData, PlyElement
+
+    v = np.zeros(len(pick), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    for i, c in enumerate("xyz"):
+        v[c] = pts[pick, i]
+    for i, c in enumerate(("red", "green", "blue")):
+        v[c] = cols[pick, i]
+    PlyData([PlyElement.describe(v, "vertex")]).write(str(ws.sparse_points_ply))
+    cfg = trainer.TrainConfig(iterations=16, max_resolution=64, num_downscales=0, checkpoint_seconds=0, evaluate=False)
+    real_render = trainer.render
+    calls = {"n": 0, "occ": 0}
+
+    def flaky(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 8:
+            raise KeyboardInterrupt
+        if len(a) > 7 and a[7] is not None:
+            calls["occ"] = int(a[7]["means"].shape[0])
+        return real_render(*a, **k)
+
+    monkeypatch.setattr(trainer, "render", flaky)
+    with pytest.raises(KeyboardInterrupt):
+        trainer.train_workspace(ws, cfg)
+    n_occ = calls["occ"]
+    assert n_occ >= 20
+    ck = load_checkpoint(ws.train_dir / "checkpoint.pt")
+    assert ck["extra"]["occluders"]["means"].shape[0] == n_occ
+    calls["occ"] = 0
+    s = trainer.train_workspace(ws, cfg)
+    assert s["resumed"] is True and calls["occ"] == n_occ  # the resumed run renders the same occluders
+    model = load_checkpoint(ws.train_dir / "model.pt")
+    assert 0 < model["extra"]["occluders"]["means"].shape[0] <= n_occ
+    export_workspace(ws)
+    g = read_splat_ply(ws.splat_ply)
+    assert len(g["means"]) == s["n_gaussians"] == model["params"]["means"].shape[0]

@@ -350,3 +350,77 @@ def test_visual_hull_keeps_an_object_hidden_from_some_views():
     assert ((pts >= lo) & (pts <= hi)).all(axis=1).mean() > 0.95
     strict = visual_hull_points(views, center, radius, 300, np.random.default_rng(0), min_inside=1.0)
     assert len(strict) < len(pts) // 4
+
+
+def _ring_views(n: int, K: np.ndarray, mask_fn) -> list:
+    from plantsplat.train.data import View
+
+    views = []
+    for k in range(n):
+        a = 2 * np.pi * k / n
+        c = 6.0 * np.array([np.cos(a), np.sin(a), 0.5])
+        fwd = -c / np.linalg.norm(c)
+        right = np.cross(fwd, [0, 0, 1.0])
+        right /= np.linalg.norm(right)
+        R = np.stack([right, np.cross(fwd, right), fwd])
+        V = np.eye(4)
+        V[:3, :3], V[:3, 3] = R, -R @ c
+        views.append(View(f"v{k}", K, V, 160, 120, mask=mask_fn(R, V)))
+    return views
+
+
+def test_occluder_points_are_the_unmasked_points_near_the_object():
+    """SfM points left out by the masks become occluders only near the masked points: a pot beside
+    the plant does, a wall far away does not, nor do the plant's own points."""
+    import cv2
+
+    from plantsplat.train.data import Scene, occluder_points
+
+    K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
+    rng = np.random.default_rng(0)
+    plant = rng.uniform(-0.5, 0.5, (200, 3)) + [0, 0, 0.6]  # the masked object
+    pot = rng.uniform(-0.4, 0.4, (100, 3)) * [1, 1, 0.5] + [0, 0, -0.1]  # below it, not masked
+    wall = rng.uniform(-1, 1, (100, 3)) * [0.1, 3, 1] + [-4.0, 0, 0]  # far away, not masked
+
+    def mask_fn(R, V):
+        m = np.zeros((120, 160), np.uint8)
+        uv = (plant @ R.T + V[:3, 3]) @ K.T
+        uv = uv[:, :2] / uv[:, 2:]
+        cv2.fillConvexPoly(m, cv2.convexHull(uv.astype(np.int32)), 255)
+        return m
+
+    views = _ring_views(12, K, mask_fn)
+    pts = np.concatenate([plant, pot, wall])
+    scene = Scene(views, pts, np.zeros((len(pts), 3), np.uint8), "test")
+    occ = occluder_points(scene, views)
+    near_pot = np.all(np.abs(occ - [0, 0, -0.1]) <= [0.41, 0.41, 0.21], axis=1)
+    assert near_pot.all()  # no wall point, no plant point
+    assert len(occ) >= 50  # most of the pot (points the plant's silhouette covers in most views are not)
+    empty = Scene(views, np.zeros((0, 3)), np.zeros((0, 3), np.uint8), "test")
+    assert len(occluder_points(empty, views)) == 0
+
+
+def test_occluders_render_as_background_and_hide_what_is_behind():
+    """An opaque occluder in front of a red Gaussian, composited over the background, leaves the
+    background colour; the model's colours still get gradients, the occluder's opacity too."""
+    from plantsplat.train.model import init_params
+    from plantsplat.train.trainer import _occluders_from, _tensors, render
+
+    params = init_params(np.array([[0.0, 0.0, 5.0]]), np.array([[1.0, 0.0, 0.0]]), 1, 0.99)
+    occ = _occluders_from(_tensors(init_params(np.array([[0.0, 0.0, 3.0]]), np.full((1, 3), 0.5), 0, 0.99)), "cpu")
+    with torch.no_grad():
+        params["scales"].fill_(np.log(0.5))
+        occ["scales"].fill_(np.log(0.5))
+    K = torch.tensor([[50.0, 0, 16], [0, 50.0, 16], [0, 0, 1]])
+    V = torch.eye(4)
+    bg = torch.tensor([0.2, 0.7, 0.3])
+    alone = render(params, V, K, 32, 32, 1, "cpu", None, bg)
+    c = alone.color[16, 16] + (1 - alone.alpha[16, 16]) * bg
+    assert c[0] > 0.8  # red
+    out = render(params, V, K, 32, 32, 1, "cpu", occ, bg)
+    c = out.color[16, 16] + (1 - out.alpha[16, 16]) * bg
+    assert torch.allclose(c, bg, atol=0.03)
+    assert out.means2d.shape[0] == 2
+    (out.color.sum() + out.alpha.sum()).backward()
+    assert params["sh0"].grad is not None and occ["opacities"].grad is not None
+    assert float(occ["opacities"].grad.abs().sum()) > 0

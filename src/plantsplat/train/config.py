@@ -41,6 +41,10 @@ class TrainConfig:
     """Start at 1/2^k resolution and double it on a schedule (cpu: 2, paper: 2 as splatfacto)."""
     crop: bool | None = None
     """Object mode: render only the foreground's bounding box (plus a margin) during training (cpu: on)."""
+    occluders: bool = True
+    """Object mode: SfM points the masks leave out near the object (pot, soil) become occluders, Gaussians
+    drawn in the background colour that hide what they stand in front of (the cube behind the pot), so
+    the model is not asked to show it there. Never exported; used by the evaluation's renders."""
     max_gaussians: int | None = None
     """Cap on the number of Gaussians (cpu: 200000, paper: none)."""
     init_points: int = 20_000

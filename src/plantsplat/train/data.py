@@ -377,6 +377,28 @@ def initial_points(scene: Scene, views: list[View], object_mode: bool, n_random:
     return pts, mean_colors(pts, views), "random (sphere around the cameras' target)"
 
 
+def occluder_points(scene: Scene, views: list[View], margin: float = 0.3) -> np.ndarray:
+    """SfM points ``[M, 3]`` that the masks leave out near the object: the pot, the soil, the table.
+
+    Object mode renders only what the masks hold, but the masks also leave out what an unmasked
+    object in front hides (the pot hides the cube and hanging fruit from some views). These points,
+    inside the bounding box of the points the masks keep (widened by ``margin`` of its size on every
+    side), seed occluders: Gaussians drawn in the background colour, which hide what lies behind them
+    and are never exported. Empty without SfM points.
+    """
+    pts = scene.points
+    if len(pts) == 0:
+        return np.zeros((0, 3))
+    seen, inside = mask_votes(pts, views)
+    kept = (inside >= 2) & (inside >= 0.5 * np.maximum(seen, 1))
+    if kept.sum() < 10:
+        return np.zeros((0, 3))
+    lo, hi = pts[kept].min(0), pts[kept].max(0)
+    pad = margin * (hi - lo)
+    near = np.all((pts >= lo - pad) & (pts <= hi + pad), axis=1)
+    return pts[near & ~kept & (seen >= 2)]
+
+
 def mean_colors(points: np.ndarray, views: list[View]) -> np.ndarray:
     """Mean image colour ``[P, 3]`` in [0, 1] of each point over the views it projects into (no
     occlusion test: a starting value that saves the optimiser many steps); grey where unseen."""

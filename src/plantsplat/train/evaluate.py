@@ -47,7 +47,7 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
                        scene: D.Scene | None = None, fps_repeats: int = 1) -> dict:
     """Evaluate the finished model of ``ws`` on its test views and write ``metrics.json``."""
     from plantsplat.raster import resolve_backend
-    from plantsplat.train.trainer import ImageCache, load_model, render
+    from plantsplat.train.trainer import ImageCache, _occluders_from, load_model, render
 
     ws = ws if isinstance(ws, Workspace) else Workspace(ws)
     params, extra = load_model(ws, train_dir)
@@ -72,6 +72,7 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
     sh = sh_degree_of(params)
     object_mode = cfg["mode"] == "object"
     bg = torch.zeros(3)
+    occ = _occluders_from(extra.get("occluders"), device) if object_mode else None  # drawn in bg, as in training
     per_view = []
     render_seconds = 0.0
     n_px = 0
@@ -85,7 +86,7 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
             viewmat = torch.tensor(views[name].viewmat, dtype=torch.float32, device=device)
             t0 = time.perf_counter()
             for _ in range(fps_repeats):
-                out = render(params, viewmat, K, w, h, sh, backend)
+                out = render(params, viewmat, K, w, h, sh, backend, occ, bg.to(device))
             if device.type == "cuda":
                 torch.cuda.synchronize()
             render_seconds += (time.perf_counter() - t0) / fps_repeats

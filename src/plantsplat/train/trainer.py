@@ -121,16 +121,47 @@ def photometric_loss(color: torch.Tensor, alpha: torch.Tensor, bg: torch.Tensor,
     return loss, ((pred.detach() - gt.detach()) ** 2).mean()
 
 
-def render(params, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int, sh_degree: int, backend: str):
-    """Rasterize the model's Gaussians (activating the parameters) into one view."""
+def render(params, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int, sh_degree: int, backend: str,
+           occluders=None, bg: torch.Tensor | None = None):
+    """Rasterize the model's Gaussians (activating the parameters) into one view.
+
+    ``occluders`` (object mode; means, scales, quats, opacities like ``params``) are drawn after the
+    model's Gaussians in the list, in the background colour ``bg`` ``[3]``: composited over ``bg``
+    they look like background, but hide what lies behind them. The result's per-Gaussian outputs
+    (``means2d``, ``radii``) then cover the model's Gaussians first, the occluders after them.
+    """
     from plantsplat.raster import rasterize
+    from plantsplat.train.model import rgb_to_sh
 
     k = (sh_degree + 1) ** 2
     colors = torch.cat([params["sh0"], params["shN"][:, : k - 1]], dim=1)  # [N, k, 3]
-    return rasterize(
-        params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]),
-        colors, viewmat, K, width, height, sh_degree=sh_degree, backend=backend,
-    )
+    means, quats, scales, opac = params["means"], params["quats"], params["scales"], params["opacities"]
+    if occluders is not None and occluders["means"].shape[0]:
+        m = occluders["means"].shape[0]
+        occ_col = torch.zeros(m, k, 3, device=colors.device, dtype=colors.dtype)
+        occ_col[:, 0] = rgb_to_sh(bg.to(colors.dtype))  # colour = 0.5 + C0 sh0 = bg; higher bands 0
+        colors = torch.cat([colors, occ_col])
+        means = torch.cat([means, occluders["means"]])
+        quats = torch.cat([quats, occluders["quats"]])
+        scales = torch.cat([scales, occluders["scales"]])
+        opac = torch.cat([opac, occluders["opacities"]])
+    return rasterize(means, quats, torch.exp(scales), torch.sigmoid(opac), colors, viewmat, K, width, height,
+                     sh_degree=sh_degree, backend=backend)
+
+
+class _ModelPart:
+    """The density strategy's view of a render with occluders: the model's own Gaussians only."""
+
+    def __init__(self, out, n: int):
+        self.radii = out.radii[:n]
+        self.means2d = out.means2d if out.means2d.shape[0] == n else _Grad(out.means2d, n)
+
+
+class _Grad:
+    def __init__(self, t: torch.Tensor, n: int):
+        self.grad = None if t.grad is None else t.grad[:n]
+        self.requires_grad = False
+        self.is_leaf = True
 
 
 def scene_scale(views: list[D.View]) -> float:
@@ -241,6 +272,7 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
         if "rng" in blob["extra"]:
             rng.bit_generator.state = blob["extra"]["rng"]
         resumed = True
+        occ = _occluders_from(blob["extra"].get("occluders"), device)
         log.info("resuming %s from step %d of %d (%d Gaussians)", paths["ckpt"], start, rc.iterations,
                  params["means"].shape[0])
     else:
@@ -250,9 +282,20 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
         state = strategy.initialize_state(sscale)
         elapsed0 = 0.0
         log.info("initialised %d Gaussians from %s; scene scale %.1f", len(pts), how, sscale)
+        occ = None
+        if object_mode and cfg.occluders:
+            opts = D.occluder_points(scene, train_views)
+            if len(opts) >= 20:
+                occ = _occluders_from(_tensors(init_params(opts, np.full((len(opts), 3), 0.5), 0,
+                                                           rc.init_opacity, seed=rc.seed + 1)), device)
+                log.info("%d occluders from the SfM points the masks leave out near the object", len(opts))
     write_json_atomic(paths["config"], {"requested": _jsonable(asdict(cfg)), "resolved": asdict(rc)})
 
     extra_base = {"config": asdict(rc), "split": split}
+    occ_opt = None
+    if occ is not None:
+        lr = _lrs(rc, sscale)
+        occ_opt = make_optimizers(occ, {k: lr[k] for k in occ.keys()})
     means_decay = (rc.lr_means_final / rc.lr_means) ** (1.0 / max(1, rc.iterations))
     order: list[int] = []
     last_good = start
@@ -263,7 +306,7 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
 
     def checkpoint(step: int) -> None:
         extra = dict(extra_base, train_seconds=elapsed0 + time.perf_counter() - t_start,
-                     rng=rng.bit_generator.state)
+                     rng=rng.bit_generator.state, occluders=_tensors(occ))
         save_checkpoint(paths["ckpt"], step, params, optimizers, state, extra)
 
     with make_progress() as bar:
@@ -290,12 +333,14 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
                 a = alpha[y0:y1, x0:x1]  # [h', w', 1]
                 gt = gt * a + (1.0 - a) * bg
 
-            for g in optimizers["means"].param_groups:
-                g["lr"] = rc.lr_means * sscale * means_decay**step
+            for o in [optimizers["means"]] + ([occ_opt["means"]] if occ_opt else []):
+                for g in o.param_groups:
+                    g["lr"] = rc.lr_means * sscale * means_decay**step
             try:
-                out = render(params, viewmat, Kc, x1 - x0, y1 - y0, sh_deg, rc.backend)
+                out = render(params, viewmat, Kc, x1 - x0, y1 - y0, sh_deg, rc.backend, occ, bg)
             except PlantsplatError as exc:  # non-finite parameters: the previous step diverged
                 _diverged(paths, last_good, exc)
+            n_model = params["means"].shape[0]
             strategy.step_pre_backward(params, optimizers, state, step, out)
             # render composited over bg, [h', w', 3], against gt: (1 - l) L1 + l (1 - SSIM)
             loss, mse = photometric_loss(out.color, out.alpha, bg, gt, rc.ssim_lambda)
@@ -303,8 +348,8 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
                 _diverged(paths, last_good, None)
             loss.backward()
             # grads are w.r.t. crop pixels; normalise by the full (downscaled) image size as gsplat
-            strategy.step_post_backward(params, optimizers, state, step, out, w, h)
-            for o in optimizers.values():
+            strategy.step_post_backward(params, optimizers, state, step, _ModelPart(out, n_model), w, h)
+            for o in list(optimizers.values()) + list((occ_opt or {}).values()):
                 o.step()
                 o.zero_grad(set_to_none=True)
 
@@ -324,6 +369,10 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
                 log.debug("step %d loss %.4f psnr %.2f n=%d", step, loss_ema, psnr_ema, params["means"].shape[0])
 
     culled = strategy.final_cull(params, optimizers)
+    if occ is not None:  # occluders that stayed transparent hide nothing
+        with torch.no_grad():
+            keep = torch.sigmoid(occ["opacities"]) >= strategy.prune_opa
+            occ = _occluders_from({k: v[keep] for k, v in _tensors(occ).items()}, device)
     train_seconds = elapsed0 + time.perf_counter() - t_start
     n_final = int(params["means"].shape[0])
     log.info("trained %d steps in %.1f s; %d Gaussians (%d culled below opacity %.2f)", rc.iterations,
@@ -336,8 +385,8 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
         "train_resolution_scale": base_scale, "final_loss": loss_ema, "final_train_psnr": psnr_ema,
         "scene_scale": sscale,
     }
-    save_checkpoint(paths["model"], rc.iterations, params, optimizers, state, dict(extra_base, summary=summary,
-                                                                                 train_seconds=train_seconds))
+    save_checkpoint(paths["model"], rc.iterations, params, optimizers, state,
+                    dict(extra_base, summary=summary, train_seconds=train_seconds, occluders=_tensors(occ)))
     paths["ckpt"].unlink(missing_ok=True)
     if cfg.evaluate:
         from plantsplat.train.evaluate import evaluate_workspace
@@ -346,6 +395,20 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
                                                 lpips_weights=cfg.lpips_weights, backend=rc.backend,
                                                 train_summary=summary, scene=scene)
     return summary
+
+
+def _tensors(p) -> dict | None:
+    """Detached copies of the geometry of a parameter dict (occluders: no colours), or None."""
+    if p is None:
+        return None
+    return {k: p[k].detach().clone().cpu() for k in ("means", "scales", "quats", "opacities")}
+
+
+def _occluders_from(t: dict | None, device) -> torch.nn.ParameterDict | None:
+    """Occluder parameters from :func:`_tensors`' dict (None: no occluders)."""
+    if not t or not t["means"].shape[0]:
+        return None
+    return torch.nn.ParameterDict({k: torch.nn.Parameter(v.clone().to(device)) for k, v in t.items()})
 
 
 def _diverged(paths: dict, last_good: int, exc: Exception | None):
