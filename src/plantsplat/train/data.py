@@ -283,6 +283,14 @@ def mask_votes(points: np.ndarray, views: list[View]) -> tuple[np.ndarray, np.nd
     return seen, inside
 
 
+def masked_points(points: np.ndarray, views: list[View]) -> tuple[np.ndarray, np.ndarray]:
+    """Which points ``[P, 3]`` belong to the masked object: inside the masks of at least half of the
+    views that see them, and of at least 2. Returns that bool ``[P]`` and the number of views that see
+    each point ``[P]``."""
+    seen, inside = mask_votes(points, views)
+    return (inside >= 2) & (inside >= 0.5 * np.maximum(seen, 1)), seen
+
+
 def scene_center_radius(views: list[View]) -> tuple[np.ndarray, float]:
     """The point nearest to all optical axes (least squares) and the median camera distance to it."""
     A = np.zeros((3, 3))
@@ -355,8 +363,7 @@ def initial_points(scene: Scene, views: list[View], object_mode: bool, n_random:
     pts, cols = scene.points, scene.colors.astype(np.float64) / 255.0
     how = "sfm"
     if len(pts) and object_mode:
-        seen, inside = mask_votes(pts, views)
-        keep = (inside >= 2) & (inside >= 0.5 * np.maximum(seen, 1))
+        keep, _ = masked_points(pts, views)
         pts, cols = pts[keep], cols[keep]
         how = "sfm (inside masks)"
     if len(pts) >= min_points:
@@ -389,8 +396,7 @@ def occluder_points(scene: Scene, views: list[View], margin: float = 0.3) -> np.
     pts = scene.points
     if len(pts) == 0:
         return np.zeros((0, 3))
-    seen, inside = mask_votes(pts, views)
-    kept = (inside >= 2) & (inside >= 0.5 * np.maximum(seen, 1))
+    kept, seen = masked_points(pts, views)
     if kept.sum() < 10:
         return np.zeros((0, 3))
     lo, hi = pts[kept].min(0), pts[kept].max(0)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 import time
+from types import SimpleNamespace
 from dataclasses import asdict
 from pathlib import Path
 
@@ -150,18 +151,13 @@ def render(params, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: i
 
 
 class _ModelPart:
-    """The density strategy's view of a render with occluders: the model's own Gaussians only."""
+    """What the density strategy reads after backward (``radii``, ``means2d.grad``) for the model's own
+    Gaussians: the first ``n`` of a render that also drew occluders."""
 
     def __init__(self, out, n: int):
         self.radii = out.radii[:n]
-        self.means2d = out.means2d if out.means2d.shape[0] == n else _Grad(out.means2d, n)
-
-
-class _Grad:
-    def __init__(self, t: torch.Tensor, n: int):
-        self.grad = None if t.grad is None else t.grad[:n]
-        self.requires_grad = False
-        self.is_leaf = True
+        grad = out.means2d.grad
+        self.means2d = SimpleNamespace(grad=None if grad is None else grad[:n])
 
 
 def scene_scale(views: list[D.View]) -> float:
