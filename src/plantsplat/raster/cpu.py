@@ -109,6 +109,11 @@ _BIG = _F32(1e30)
 _NREC = 16  # floats per Gaussian record (_records): one 64-byte cache line
 _CH = 64  # records gathered at a time from a tile list (_gather)
 _RUN = 8  # tiles a worker takes at a time from the shared counter
+_CHECK = 16  # Gaussians between the render kernel's checks whether a whole tile has stopped
+_TS_MAX = 32  # largest tile edge the cpu kernels take
+# per-pixel arrays of a worker lie in one allocation, this many floats apart (> _TS_MAX^2, and not a
+# multiple of 1024 floats, so no two of them share 4 KiB address bits); see _scratch
+_STRIDE = _TS_MAX * _TS_MAX + 16
 
 
 @njit(inline="always", fastmath=_FM, cache=True)
@@ -334,6 +339,22 @@ def _local_pixels(px, py, ts):  # pragma: no cover - numba
 
 
 @njit(inline="always", cache=True)
+def _scratch(n_fields):  # pragma: no cover - numba
+    """A worker's zeroed per-pixel arrays as one allocation; :func:`_field` views one of them.
+
+    The pixel loops read and write several such arrays. Held in separate allocations, LLVM cannot
+    prove they do not overlap and checks at run time before every vectorised row run (dozens of
+    pointer comparisons per Gaussian and block); as views at constant offsets of one allocation,
+    it proves it at compile time."""
+    return np.zeros(n_fields * _STRIDE, np.float32)
+
+
+@njit(inline="always", cache=True)
+def _field(work, f, npix):  # pragma: no cover - numba
+    return work[f * _STRIDE:f * _STRIDE + npix]
+
+
+@njit(inline="always", cache=True)
 def _mark_inside(a, nx, ny, ts, on, off):  # pragma: no cover - numba
     """a[p] = on for the tile's pixels inside the image (nx columns, ny rows), off for the others."""
     if nx == ts and ny == ts:
@@ -354,6 +375,15 @@ def _gather(rec, ids, j, m, buf):  # pragma: no cover - numba
         g = ids[j + i]
         for f in range(_NREC):
             buf[i, f] = rec[g, f]
+
+
+@njit(inline="always", cache=True)
+def _all_stopped(T, npix):  # pragma: no cover - numba
+    """Whether every pixel of the tile has stopped (the render kernel keeps stopped pixels' T negated)."""
+    live = _ZERO
+    for p in range(npix):
+        live = max(live, T[p])
+    return live <= _ZERO
 
 
 @njit(inline="always", cache=True)
@@ -397,19 +427,21 @@ def _forward_render(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, wid
     """Composite every listed tile: colour, alpha and sum z*w, with no bookkeeping for a backward pass.
 
     A pixel that stops keeps its transmittance negated (T < 0 means stopped; pixels outside the image
-    start at -1), so one array does for both."""
+    start at -1), so one array does for both. Whether the whole tile has stopped is checked every
+    ``_CHECK`` Gaussians, not counted in the pixel loop (which that count slowed by a fifth)."""
     ts = tile_size
     npix = ts * ts
     n_sched = tiles.shape[0]
     for w in prange(n_workers):
-        px = np.empty(npix, np.float32)
-        py = np.empty(npix, np.float32)
+        work = _scratch(7)
+        px = _field(work, 0, npix)
+        py = _field(work, 1, npix)
         _local_pixels(px, py, ts)
-        T = np.empty(npix, np.float32)
-        ar = np.zeros(npix, np.float32)
-        ag = np.zeros(npix, np.float32)
-        ab = np.zeros(npix, np.float32)
-        ad = np.zeros(npix, np.float32)
+        T = _field(work, 2, npix)
+        ar = _field(work, 3, npix)
+        ag = _field(work, 4, npix)
+        ab = _field(work, 5, npix)
+        ad = _field(work, 6, npix)
         buf = np.empty((_CH, _NREC), np.float32)
         flat = rec.reshape(-1)  # for _prefetch
         k = 0
@@ -422,7 +454,6 @@ def _forward_render(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, wid
                 k_end = min(k + _RUN, n_sched)
             t = tiles[k]
             x_0, y_0, nx, ny = _tile_origin(t, tiles_x, ts, width, height)
-            n_act = nx * ny
             _mark_inside(T, nx, ny, ts, _ONE, -_ONE)
             ar[:] = _ZERO
             ag[:] = _ZERO
@@ -430,19 +461,20 @@ def _forward_render(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, wid
             ad[:] = _ZERO
             j = offsets[t]
             end = offsets[t + 1]
-            while j < end and n_act > 0:
+            done = False
+            while j < end and not done:
                 m = min(_CH, end - j)
                 _gather(rec, ids, j, m, buf)
                 # the next records of this list, or the first of the next tile's, while this chunk composites
                 _prefetch_next(flat, ids, j + m, end, tiles, offsets, k + 1, k_end)
                 j += m
                 for i in range(m):
-                    if n_act == 0:
+                    if i % _CHECK == _CHECK - 1 and _all_stopped(T, npix):
+                        done = True
                         break
                     mx, my, r0, r1, c0, c1, ha, cb, hc, o, cr, cg, cbl, z = _unpack(buf, i, x_0, y_0, ts)
                     if r1 <= r0 or c1 <= c0:
                         continue
-                    n_stop = _ZERO  # float32 counter keeps the loop in 8-wide float vectors
                     for blk in range(c0 // _LANES, (c1 - 1) // _LANES + 1):
                         b0, b1 = _block_rows(mx, my, blk, buf[i, 12], buf[i, 13], buf[i, 14], buf[i, 15], r0, r1, ts)
                         if b1 <= b0:
@@ -471,8 +503,6 @@ def _forward_render(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, wid
                             f1 = (_ONE - al) if use else _ONE
                             sg = -_ONE if stop else _ONE
                             T[p] = Tp * f1 * sg
-                            n_stop += _ONE if stop else _ZERO
-                    n_act -= int(n_stop)
             for cbk in range(ts // _LANES):
                 for row in range(ny):
                     for lane in range(min(_LANES, nx - cbk * _LANES)):
@@ -498,18 +528,20 @@ def _forward_train(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, widt
     npix = ts * ts
     n_sched = tiles.shape[0]
     for w in prange(n_workers):
-        px = np.empty(npix, np.float32)
-        py = np.empty(npix, np.float32)
+        work = _scratch(8)
+        px = _field(work, 0, npix)
+        py = _field(work, 1, npix)
         _local_pixels(px, py, ts)
-        T = np.empty(npix, np.float32)
-        ar = np.zeros(npix, np.float32)
-        ag = np.zeros(npix, np.float32)
-        ab = np.zeros(npix, np.float32)
-        ad = np.zeros(npix, np.float32)
+        T = _field(work, 2, npix)
+        ar = _field(work, 3, npix)
+        ag = _field(work, 4, npix)
+        ab = _field(work, 5, npix)
+        ad = _field(work, 6, npix)
         # list position of the Gaussian where the pixel stopped: _NEVER while it is compositing, -1
-        # outside the image (one array for both, and min() rather than a conditional store, keep
-        # the loop vectorised)
-        act = np.empty(npix, np.float32)
+        # outside the image. The pixel loop only negates a stopping pixel's T (as the render
+        # kernel); the position is written after that Gaussian, when any pixel stopped. Written
+        # in the loop, LLVM made it a masked store, which slowed the whole loop by a sixth.
+        act = _field(work, 7, npix)
         buf = np.empty((_CH, _NREC), np.float32)
         flat = rec.reshape(-1)  # for _prefetch
         n_pairs = 0.0
@@ -527,7 +559,7 @@ def _forward_train(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, widt
             start = offsets[t]
             end = offsets[t + 1]
             _mark_inside(act, nx, ny, ts, _NEVER, -_ONE)
-            T[:] = _ONE
+            _mark_inside(T, nx, ny, ts, _ONE, -_ONE)
             ar[:] = _ZERO
             ag[:] = _ZERO
             ab[:] = _ZERO
@@ -558,8 +590,8 @@ def _forward_train(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, widt
                             dy = my - py[p]
                             sig = ha * dx * dx + hc * dy * dy + cb * dx * dy
                             al = min(_ALPHA_MAX, o * _exp_neg(sig))
-                            ok = (act[p] > jl) & (sig >= _ZERO) & (al >= _ALPHA_MIN)
                             Tp = T[p]
+                            ok = (Tp > _ZERO) & (sig >= _ZERO) & (al >= _ALPHA_MIN)
                             nT = Tp * (_ONE - al)
                             stop = ok & (nT <= _T_EPS)
                             use = ok & (nT > _T_EPS)
@@ -568,11 +600,16 @@ def _forward_train(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, widt
                             ag[p] += wt * cg
                             ab[p] += wt * cbl
                             ad[p] += wt * z
-                            T[p] = Tp * ((_ONE - al) if use else _ONE)
-                            act[p] = min(act[p], jl if stop else _NEVER)
+                            f1 = (_ONE - al) if use else _ONE
+                            sg = -_ONE if stop else _ONE
+                            T[p] = Tp * f1 * sg
                             n_use += _ONE if use else _ZERO
                             n_stop += _ONE if stop else _ZERO
-                    n_act -= int(n_stop)
+                    if n_stop > _ZERO:  # rare: each pixel stops once
+                        n_act -= int(n_stop)
+                        for p in range(npix):
+                            if T[p] < _ZERO and act[p] == _NEVER:
+                                act[p] = jl
                     n_pairs += n_use
                 j += m
             n_list = _F32(end - start)
@@ -585,9 +622,9 @@ def _forward_train(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, widt
                         out_rgb[yy, xx, 0] = ar[p]
                         out_rgb[yy, xx, 1] = ag[p]
                         out_rgb[yy, xx, 2] = ab[p]
-                        out_alpha[yy, xx] = _ONE - T[p]
+                        out_alpha[yy, xx] = _ONE - abs(T[p])
                         out_depth[yy, xx] = ad[p]
-                        out_T[yy, xx] = T[p]
+                        out_T[yy, xx] = abs(T[p])
                         out_last[yy, xx] = np.int32(min(n_list, act[p]))
             k += 1
         out_n[w] = n_pairs
@@ -602,17 +639,18 @@ def _backward(rec, offsets, ids, tiles, n_workers, tile_size, tiles_x, width, he
     npix = ts * ts
     n_sched = tiles.shape[0]
     for w in prange(n_workers):
-        px = np.empty(npix, np.float32)
-        py = np.empty(npix, np.float32)
+        work = _scratch(10)
+        px = _field(work, 0, npix)
+        py = _field(work, 1, npix)
         _local_pixels(px, py, ts)
-        T = np.empty(npix, np.float32)
-        Q = np.empty(npix, np.float32)  # sum over later Gaussians of q_j w_j
-        gat = np.empty(npix, np.float32)  # dL/dalpha * T_final
-        gr = np.empty(npix, np.float32)
-        gg = np.empty(npix, np.float32)
-        gb = np.empty(npix, np.float32)
-        gd = np.empty(npix, np.float32)
-        lastp = np.empty(npix, np.float32)
+        T = _field(work, 2, npix)
+        Q = _field(work, 3, npix)  # sum over later Gaussians of q_j w_j
+        gat = _field(work, 4, npix)  # dL/dalpha * T_final
+        gr = _field(work, 5, npix)
+        gg = _field(work, 6, npix)
+        gb = _field(work, 7, npix)
+        gd = _field(work, 8, npix)
+        lastp = _field(work, 9, npix)
         buf = np.empty((_CH, _NREC), np.float32)
         flat = rec.reshape(-1)  # for _prefetch
         k = 0
@@ -834,10 +872,12 @@ def composite_cpu(
         >>> round(float(a[3, 3, 0]), 4)  # 0.5 * exp(-0.5 * (0.5^2 + 0.5^2)) at pixel centre (3.5, 3.5)
         0.3894
     """
-    if tile_size % _LANES:
+    if tile_size % _LANES or tile_size > _TS_MAX:
         from . import RasterInputError
 
-        raise RasterInputError(f"rasterize: the cpu backend needs tile_size to be a multiple of {_LANES}, got {tile_size}")
+        raise RasterInputError(
+            f"rasterize: the cpu backend needs tile_size to be a multiple of {_LANES} up to {_TS_MAX}, got {tile_size}"
+        )
     inputs = (means2d, conics, colors, opacities, depths)
     if torch.is_grad_enabled() and any(t.requires_grad for t in inputs):
         return _CompositeCPU.apply(means2d, conics, colors, opacities, depths, radii, width, height, tile_size)
