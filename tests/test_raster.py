@@ -382,6 +382,8 @@ def test_bad_camera_and_sizes_raise_clear_errors():
         rasterize(*p[:4], torch.zeros(10, 4, 3), V, K, 16, 16, sh_degree=2, backend="cpu")
     with pytest.raises(RasterInputError, match="multiple of 8 up to 32"):
         rasterize(*p, V, K, 16, 16, backend="cpu", tile_size=12)
+    with pytest.raises(RasterInputError, match="up to 32, got 40"):
+        rasterize(*p, V, K, 16, 16, backend="cpu", tile_size=40)
     with pytest.raises(RasterInputError, match="near < far"):
         rasterize(*p, V, K, 16, 16, backend="cpu", near=2.0, far=1.0)
 
