@@ -122,6 +122,16 @@ def photometric_loss(color: torch.Tensor, alpha: torch.Tensor, bg: torch.Tensor,
     return loss, ((pred.detach() - gt.detach()) ** 2).mean()
 
 
+# Occluders start opaque and at half the model's initial size (half the mean distance to their 3 nearest
+# SfM neighbours): they stand for solid pot and soil. Pixels the plant leaves partly transparent go on
+# through the occluders behind it, and wide, half-transparent occluders made every such pixel composite
+# many of them: at 0.5 opacity and full size they added 75 % to the composited pairs, at 0.99 and half
+# size 47 % (my script, seed 0 of the training benchmark: 2000 steps 169 s -> 153 s, whole-frame and
+# foreground PSNR within 0.1 dB).
+_OCC_OPACITY = 0.99
+_OCC_SCALE = 0.5
+
+
 def render(params, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int, sh_degree: int, backend: str,
            occluders=None, bg: torch.Tensor | None = None):
     """Rasterize the model's Gaussians (activating the parameters) into one view.
@@ -282,8 +292,8 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
         if object_mode and cfg.occluders:
             opts = D.occluder_points(scene, train_views)
             if len(opts) >= 20:
-                occ = _occluders_from(_tensors(init_params(opts, np.full((len(opts), 3), 0.5), 0,
-                                                           rc.init_opacity, seed=rc.seed + 1)), device)
+                occ = _occluders_from(_tensors(init_params(opts, np.full((len(opts), 3), 0.5), 0, _OCC_OPACITY,
+                                                           init_scale=_OCC_SCALE, seed=rc.seed + 1)), device)
                 log.info("%d occluders from the SfM points the masks leave out near the object", len(opts))
     write_json_atomic(paths["config"], {"requested": _jsonable(asdict(cfg)), "resolved": asdict(rc)})
 
