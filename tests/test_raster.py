@@ -108,6 +108,36 @@ def test_cpu_matches_reference_with_sh_degree_3():
     _compare(_scene(60, 5, sh_degree=3), 40, 30, sh_degree=3)
 
 
+def test_trailing_background_gaussians_are_dropped_without_changing_the_composite_or_gradients():
+    """Gaussians coloured as the background (the trainer's occluders) with nothing else behind them in a
+    tile: the cpu backend drops them there, the composite over that background and every gradient stay
+    the reference's (which draws them all), and only alpha shows they were left out."""
+    width, height, n_bg = 48, 40, 60
+    bg = torch.tensor([0.2, 0.7, 0.4])
+    params = _scene(120 + n_bg, 21, edge_cases=False)
+    params[4][-n_bg:] = bg  # background-coloured; the _scene depths interleave them with the others
+    params[2][-n_bg:] *= 2.0  # larger, so some tiles hold nothing else
+    V, K = _camera(width, height)
+    gen = torch.Generator().manual_seed(5)
+    w = torch.randn(height, width, 3, generator=gen)
+
+    def run(backend, trailing):
+        ps = [p.detach().clone().requires_grad_(i < 4) for i, p in enumerate(params)]
+        out = rasterize(*ps, V, K, width, height, backend=backend, trailing_background=trailing)
+        comp = out.color + (1 - out.alpha) * bg
+        (comp * w).sum().backward()
+        return comp.detach(), out.alpha.detach(), [p.grad for p in ps[:4]]
+
+    ref_c, ref_a, ref_g = run("reference", 0)
+    cpu_c, cpu_a, cpu_g = run("cpu", n_bg)
+    torch.testing.assert_close(cpu_c, ref_c, atol=IMG_ATOL, rtol=0)
+    for name, a, b in zip(["means", "quats", "scales", "opacities"], cpu_g, ref_g):
+        assert _rel(a, b) < GRAD_RTOL, (name, _rel(a, b))
+    assert float((ref_a - cpu_a).max()) > 0.1  # some trailing background Gaussians were dropped
+    with pytest.raises(RasterInputError, match="trailing_background"):
+        rasterize(*params, V, K, width, height, backend="cpu", trailing_background=len(params[0]) + 1)
+
+
 def test_cpu_matches_reference_other_tile_size():
     _compare(_scene(80, 6), 45, 27, tile_size=8)
 

@@ -183,6 +183,7 @@ def rasterize(
     eps2d: float = 0.3,
     backend: str = "auto",
     tile_size: int = 16,
+    trailing_background: int = 0,
 ) -> RenderResult:
     """Render N 3D Gaussians into one ``height`` x ``width`` pinhole view, differentiably.
 
@@ -202,6 +203,12 @@ def rasterize(
         eps2d: low-pass dilation added to the 2D covariances.
         backend: ``auto`` | ``cpu`` | ``gsplat`` | ``reference``.
         tile_size: tile edge in pixels (16 as gsplat).
+        trailing_background: the last this many Gaussians are coloured exactly as the background the
+            caller will composite the image over (``color + (1 - alpha) * bg``; the trainer's
+            occluders). Where nothing else lies behind them they change neither that composite nor
+            any gradient, so the cpu backend drops them from the end of each tile's list: same
+            composite and gradients, less work; ``alpha`` and ``depth`` alone then leave them out
+            there. Other backends draw them all.
 
     Gradients flow to means, quats, scales, opacities and colors (SH coefficients); the cpu
     backend does not differentiate with respect to the camera (viewmat, K). Under
@@ -219,6 +226,10 @@ def rasterize(
     """
     _validate(means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, near, far,
               eps2d, tile_size)
+    if isinstance(trailing_background, bool) or not isinstance(trailing_background, int) \
+            or not 0 <= trailing_background <= means.shape[0]:
+        raise RasterInputError(f"rasterize: trailing_background must be an int in 0..N={means.shape[0]}, "
+                               f"got {trailing_background!r}")
     backend = resolve_backend(backend)
     if backend == "gsplat":
         from .gsplat_backend import rasterize_gsplat
@@ -261,7 +272,8 @@ def rasterize(
         from .cpu import composite_cpu
 
         color, alpha, depth_sum = composite_cpu(
-            means2d, conics, rgb, opacities, depths, radii2, width, height, tile_size
+            means2d, conics, rgb, opacities, depths, radii2, width, height, tile_size,
+            first_background=means.shape[0] - trailing_background,
         )
     depth = depth_sum / torch.clamp(alpha, min=1e-10)  # [H, W, 1] gsplat "ED"
     visible = (radii2 > 0).all(dim=-1)  # [N]

@@ -320,6 +320,31 @@ def _bin(rec, radii, depths, tile_size, tiles_x, tiles_y):
     return _fill(order, box, tiles_x, tiles_x * tiles_y, _n_workers())
 
 
+@njit(parallel=True, cache=True)
+def _trim_tails(offsets, ids, first_bg):  # pragma: no cover - numba
+    """Tile lists without their trailing entries ``>= first_bg`` (Gaussians in the background colour
+    with nothing but such Gaussians behind them): new (offsets, ids)."""
+    n_tiles = offsets.shape[0] - 1
+    ends = np.empty(n_tiles, np.int64)
+    for t in prange(n_tiles):
+        e = offsets[t + 1]
+        while e > offsets[t] and ids[e - 1] >= first_bg:
+            e -= 1
+        ends[t] = e
+    new_off = np.empty(n_tiles + 1, np.int64)
+    acc = 0
+    for t in range(n_tiles):
+        new_off[t] = acc
+        acc += ends[t] - offsets[t]
+    new_off[n_tiles] = acc
+    new_ids = np.empty(acc, np.int32)
+    for t in prange(n_tiles):
+        o = new_off[t]
+        for j in range(offsets[t], ends[t]):
+            new_ids[o + j - offsets[t]] = ids[j]
+    return new_off, new_ids
+
+
 def _tile_schedule(offsets: np.ndarray) -> np.ndarray:
     """Non-empty tiles in raster order. Workers take runs of ``_RUN`` of them from a shared atomic
     counter (so a worker slowed by other load takes fewer), and neighbouring tiles, which share
@@ -805,7 +830,7 @@ def _np32(t: Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().to(torch.float32).numpy())
 
 
-def _prepare(means2d, conics, colors, opacities, depths, radii, width, height, tile_size):
+def _prepare(means2d, conics, colors, opacities, depths, radii, width, height, tile_size, first_background=None):
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
     r2 = np.ascontiguousarray(radii.detach().to(torch.int32).numpy())  # [N, 2]
@@ -814,6 +839,8 @@ def _prepare(means2d, conics, colors, opacities, depths, radii, width, height, t
     if r2.shape[0]:
         _records(_np32(means2d), _np32(conics), _np32(colors), _np32(opacities), z, r2, rec)
     offsets, ids = _bin(rec, r2, z, tile_size, tiles_x, tiles_y)
+    if first_background is not None and first_background < r2.shape[0]:
+        offsets, ids = _trim_tails(offsets, ids, first_background)
     tiles = _tile_schedule(offsets)
     return (rec,), offsets, ids, tiles, tiles_x
 
@@ -841,9 +868,9 @@ def _render(arrays, offsets, ids, tiles, tiles_x, width, height, tile_size, save
 
 class _CompositeCPU(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, colors, opacities, depths, radii, width, height, tile_size):
+    def forward(ctx, means2d, conics, colors, opacities, depths, radii, width, height, tile_size, first_bg):
         arrays, offsets, ids, tiles, tiles_x = _prepare(
-            means2d, conics, colors, opacities, depths, radii, width, height, tile_size
+            means2d, conics, colors, opacities, depths, radii, width, height, tile_size, first_bg
         )
         rgb, alpha, dsum, T, last = _render(arrays, offsets, ids, tiles, tiles_x, width, height, tile_size, True)
         ctx.saved = (arrays, offsets, ids, tiles, tiles_x, width, height, tile_size, T, last)
@@ -863,7 +890,7 @@ class _CompositeCPU(torch.autograd.Function):
         g = torch.from_numpy(_reduce(ids, grad_isect, n))  # [N, 10]
         dt = g_rgb.dtype
         return (g[:, 0:2].to(dt), g[:, 2:5].to(dt), g[:, 6:9].to(dt), g[:, 5].to(dt), g[:, 9].to(dt),
-                None, None, None, None)
+                None, None, None, None, None)
 
 
 def composite_cpu(
@@ -876,11 +903,14 @@ def composite_cpu(
     width: int,
     height: int,
     tile_size: int = 16,
+    first_background: int | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Composite projected Gaussians with the numba kernels: colour [H, W, 3], alpha [H, W, 1], sum z*w [H, W, 1].
 
     Same rules and outputs as :func:`plantsplat.raster.reference.composite_reference`; differentiable
-    with respect to means2d, conics, colors, opacities and depths.
+    with respect to means2d, conics, colors, opacities and depths. Gaussians from index
+    ``first_background`` on are dropped from the end of each tile's list (see ``trailing_background``
+    in :func:`plantsplat.raster.rasterize`).
 
     Example:
         >>> c, a, d = composite_cpu(torch.tensor([[4.0, 4.0]]), torch.tensor([[1.0, 0.0, 1.0]]),
@@ -896,9 +926,10 @@ def composite_cpu(
         )
     inputs = (means2d, conics, colors, opacities, depths)
     if torch.is_grad_enabled() and any(t.requires_grad for t in inputs):
-        return _CompositeCPU.apply(means2d, conics, colors, opacities, depths, radii, width, height, tile_size)
+        return _CompositeCPU.apply(means2d, conics, colors, opacities, depths, radii, width, height, tile_size,
+                                   first_background)
     arrays, offsets, ids, tiles, tiles_x = _prepare(
-        means2d, conics, colors, opacities, depths, radii, width, height, tile_size
+        means2d, conics, colors, opacities, depths, radii, width, height, tile_size, first_background
     )
     rgb, alpha, dsum, _, _ = _render(arrays, offsets, ids, tiles, tiles_x, width, height, tile_size, False)
     dt = means2d.dtype

@@ -139,7 +139,10 @@ def render(params, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: i
     ``occluders`` (object mode; means, scales, quats, opacities like ``params``) are drawn after the
     model's Gaussians in the list, in the background colour ``bg`` ``[3]``: composited over ``bg``
     they look like background, but hide what lies behind them. The result's per-Gaussian outputs
-    (``means2d``, ``radii``) then cover the model's Gaussians first, the occluders after them.
+    (``means2d``, ``radii``) then cover the model's Gaussians first, the occluders after them. With
+    occluders, use the result only composited over ``bg``: the cpu backend drops occluders with nothing
+    of the model behind them (``trailing_background``), which leaves that composite and every gradient
+    as they were but not ``alpha`` alone.
     """
     from plantsplat.raster import rasterize
     from plantsplat.train.model import rgb_to_sh
@@ -147,6 +150,7 @@ def render(params, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: i
     k = (sh_degree + 1) ** 2
     colors = torch.cat([params["sh0"], params["shN"][:, : k - 1]], dim=1)  # [N, k, 3]
     means, quats, scales, opac = params["means"], params["quats"], params["scales"], params["opacities"]
+    m = 0
     if occluders is not None and occluders["means"].shape[0]:
         m = occluders["means"].shape[0]
         occ_col = torch.zeros(m, k, 3, device=colors.device, dtype=colors.dtype)
@@ -156,8 +160,9 @@ def render(params, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: i
         quats = torch.cat([quats, occluders["quats"]])
         scales = torch.cat([scales, occluders["scales"]])
         opac = torch.cat([opac, occluders["opacities"]])
+    # occluders with nothing of the model behind them change neither the composite over bg nor a gradient
     return rasterize(means, quats, torch.exp(scales), torch.sigmoid(opac), colors, viewmat, K, width, height,
-                     sh_degree=sh_degree, backend=backend)
+                     sh_degree=sh_degree, backend=backend, trailing_background=m)
 
 
 class _ModelPart:
