@@ -214,7 +214,8 @@ def rasterize(
     backend does not differentiate with respect to the camera (viewmat, K). Under
     ``torch.no_grad()`` the cpu backend skips the bookkeeping for the backward pass. The cpu
     backend computes in float32 (float64 inputs are rounded) and needs ``tile_size`` to be a
-    multiple of 8 up to 32. Bad shapes, non-finite values and impossible sizes raise :class:`RasterInputError`; N = 0 renders an empty (transparent) image.
+    multiple of 8 up to 32. Bad shapes, non-finite values and impossible sizes raise
+    :class:`RasterInputError`; N = 0 renders an empty (transparent) image.
 
     Example:
         >>> import torch
