@@ -127,6 +127,15 @@ def test_orbit_poses_fill_gaps_and_reject_flips():
     assert np.linalg.norm(chord[:2] - _centre(views[12])[:2]) > 3.0  # what straight interpolation would give
     rot = [np.linalg.norm(full[j][:3, :3] - views[j][:3, :3]) for j in (10, 12, 15, 0, 59)]
     assert max(rot) < 0.35, rot
+    # a gap of more than half a turn (the cube hidden behind the pot for 9 of 16 frames a turn) goes on the way the
+    # camera turns, not the shorter way back, and the cameras keep facing the axis
+    ring = _orbit_views(K, n=16)  # 22.5 degrees per frame
+    gap = [T if not 4 <= j <= 12 else None for j, T in enumerate(ring)]
+    full, _ = geo.fill_orbit_poses(gap, centre)
+    for j in range(4, 13):
+        assert np.linalg.norm(_centre(full[j])[:2] - _centre(ring[j])[:2]) < 0.5, j
+        axis_err = np.degrees(np.arccos(np.clip(full[j][2, :3] @ ring[j][2, :3], -1, 1)))  # optical axes
+        assert axis_err < 12.0, (j, axis_err)
     # a flipped (mirrored about the optical axis) pose among good ones is found
     bad = list(views)
     flip = np.diag([-1.0, -1.0, 1.0, 1.0])

@@ -612,23 +612,34 @@ def fill_orbit_poses(
         c, s = np.cos(angle), np.sin(angle)
         return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
 
-    for a, b in zip(have[:-1], have[1:]):
+    def rate(i0, i1):  # mean turn per frame (rad) between two posed frames
+        t0, t1 = cyl(c2w[i0][:3, 3])[0], cyl(c2w[i1][:3, 3])[0]
+        return ((t1 - t0 + np.pi) % (2 * np.pi) - np.pi) / (i1 - i0)
+
+    def local_rate(k):  # turn per frame around the gap after have[k], from posed neighbours a few frames apart
+        near = [rate(have[m], have[m + 1]) for m in (k - 1, k + 1)
+                if 0 <= m < len(have) - 1 and have[m + 1] - have[m] <= 3]
+        return float(np.mean(near)) if near else None
+
+    for k, (a, b) in enumerate(zip(have[:-1], have[1:])):
         if b - a < 2:
             continue
         ta, ra, za = cyl(c2w[a][:3, 3])
         tb, rb, zb = cyl(c2w[b][:3, 3])
         dt = (tb - ta + np.pi) % (2 * np.pi) - np.pi  # shortest turn, [-pi, pi)
-        slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([c2w[a][:3, :3], c2w[b][:3, :3]])))
+        w = local_rate(k)
+        if w is not None:  # a long gap can turn the long way round, or more than once: follow the camera's pace
+            dt += 2 * np.pi * np.round((w * (b - a) - dt) / (2 * np.pi))
+        # orientations relative to the orbit (camera turned back by its angle), interpolated there and turned
+        # forward again: the camera keeps facing the axis however far the gap turns
+        rel = np.stack([rot_z(-ta) @ c2w[a][:3, :3], rot_z(-(ta + dt)) @ c2w[b][:3, :3]])
+        slerp = Slerp([0.0, 1.0], Rotation.from_matrix(rel))
         for j in range(a + 1, b):
             t = (j - a) / (b - a)
             M = np.eye(4)
-            M[:3, :3] = slerp([t]).as_matrix()[0]
+            M[:3, :3] = rot_z(ta + t * dt) @ slerp([t]).as_matrix()[0]
             M[:3, 3] = from_cyl(ta + t * dt, ra + t * (rb - ra), za + t * (zb - za))
             out[j], filled[j] = np.linalg.inv(M), True
-
-    def rate(i0, i1):  # mean turn per frame (rad) between two posed frames
-        t0, t1 = cyl(c2w[i0][:3, 3])[0], cyl(c2w[i1][:3, 3])[0]
-        return ((t1 - t0 + np.pi) % (2 * np.pi) - np.pi) / (i1 - i0)
 
     span = have[: min(len(have), 6)]
     w0 = rate(span[0], span[-1])
