@@ -136,6 +136,13 @@ def test_orbit_poses_fill_gaps_and_reject_flips():
         assert np.linalg.norm(_centre(full[j])[:2] - _centre(ring[j])[:2]) < 0.5, j
         axis_err = np.degrees(np.arccos(np.clip(full[j][2, :3] @ ring[j][2, :3], -1, 1)))  # optical axes
         assert axis_err < 12.0, (j, axis_err)
+    # the pace comes from the nearest posed frames close enough together to tell it (here frames 0 and 1: 1 -> 8
+    # turns 105 degrees, 8 -> 23 turns 225 degrees)
+    ring = _orbit_views(K, n=24)
+    sparse = [T if j in (0, 1, 8, 23) else None for j, T in enumerate(ring)]
+    full, _ = geo.fill_orbit_poses(sparse, centre)
+    err = [np.linalg.norm(_centre(full[j])[:2] - _centre(ring[j])[:2]) for j in range(2, 23)]
+    assert max(err) < 0.5, err
     # a flipped (mirrored about the optical axis) pose among good ones is found
     bad = list(views)
     flip = np.diag([-1.0, -1.0, 1.0, 1.0])

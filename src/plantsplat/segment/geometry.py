@@ -616,9 +616,14 @@ def fill_orbit_poses(
         t0, t1 = cyl(c2w[i0][:3, 3])[0], cyl(c2w[i1][:3, 3])[0]
         return ((t1 - t0 + np.pi) % (2 * np.pi) - np.pi) / (i1 - i0)
 
-    def local_rate(k):  # turn per frame around the gap after have[k], from posed neighbours a few frames apart
-        near = [rate(have[m], have[m + 1]) for m in (k - 1, k + 1)
-                if 0 <= m < len(have) - 1 and have[m + 1] - have[m] <= 3]
+    # turn per frame between consecutive posed frames whose turn is unambiguous (under a quarter turn)
+    sure = [(m, rate(have[m], have[m + 1])) for m in range(len(have) - 1)]
+    sure = [(m, w) for m, w in sure if abs(w) * (have[m + 1] - have[m]) < np.pi / 2]
+
+    def local_rate(k):  # turn per frame around the gap after have[k]: the nearest sure pair on either side
+        before = [w for m, w in sure if m < k]
+        after = [w for m, w in sure if m > k]
+        near = before[-1:] + after[:1]
         return float(np.mean(near)) if near else None
 
     for k, (a, b) in enumerate(zip(have[:-1], have[1:])):
