@@ -44,9 +44,10 @@ def trained(synth_capture, tmp_path_factory):
     losses = []
     orig = trainer.photometric_loss
 
-    def spy(color, alpha, bg, gt, lam):  # record the L1 part of each step's loss
-        losses.append(float((color + (1 - alpha) * bg - gt).abs().mean().detach()))
-        return orig(color, alpha, bg, gt, lam)
+    def spy(color, alpha, bg, gt, lam, gt_alpha=None):  # record the L1 part of each step's loss
+        target = gt if gt_alpha is None else gt * gt_alpha + (1 - gt_alpha) * bg
+        losses.append(float((color + (1 - alpha) * bg - target).abs().mean().detach()))
+        return orig(color, alpha, bg, gt, lam, gt_alpha)
 
     trainer.photometric_loss = spy
     try:

@@ -95,6 +95,40 @@ def test_training_loss_is_fused_and_matches_torch(h, w, lam):
     assert gt_req.grad is not None and float(gt_req.grad.abs().sum()) > 0
 
 
+@pytest.mark.parametrize("h,w", [(37, 29), (1, 5)])
+def test_fused_loss_composites_a_cropped_target_like_torch(h, w):
+    """Object mode passes the frame and its mask as crops (views into whole frames) with ``gt_alpha``: the fused
+    loss composites the target over the background itself, and gives the value, MSE and gradients of compositing
+    with PyTorch first and calling the loss on the result."""
+    from plantsplat.train import trainer
+
+    g = torch.Generator().manual_seed(7 * h + w)
+    frame = torch.rand(h + 9, w + 11, 3, generator=g)
+    mask = (torch.rand(h + 9, w + 11, 1, generator=g) > 0.4).float()
+    img, ga = frame[4:4 + h, 6:6 + w], mask[4:4 + h, 6:6 + w]  # views with strided rows
+    assert h == 1 or not img.is_contiguous()  # (one row of a crop counts as contiguous)
+    bg = torch.rand(3, generator=g)
+    color = torch.rand(h, w, 3, generator=g)
+    alpha = torch.rand(h, w, 1, generator=g)
+    results = []
+    for crop in (True, False):
+        c = color.clone().requires_grad_(True)
+        al = alpha.clone().requires_grad_(True)
+        if crop:
+            loss, mse = trainer.photometric_loss(c, al, bg, img, 0.2, ga)
+        else:
+            loss, mse = trainer.photometric_loss(c, al, bg, (img * ga + (1 - ga) * bg).contiguous(), 0.2)
+        loss.backward()
+        results.append((float(loss), float(mse), c.grad, al.grad))
+    (l1, m1, c1, a1), (l2, m2, c2, a2) = results
+    assert abs(l1 - l2) < 1e-6 and abs(m1 - m2) < 1e-6
+    assert torch.allclose(c1, c2, atol=1e-7) and torch.allclose(a1, a2, atol=1e-7)
+    # the PyTorch fallback (a target that needs a gradient) composites the same way
+    img_req = img.clone().requires_grad_(True)
+    loss_t, _ = trainer.photometric_loss(color, alpha, bg, img_req, 0.2, ga)
+    assert abs(float(loss_t) - l1) < 1e-5
+
+
 def test_fused_loss_rejects_bad_shapes():
     from plantsplat.raster.ssim import photometric_loss_cpu
 

@@ -90,11 +90,12 @@ def _hblur(p, o, g):  # pragma: no cover - numba
 
 
 @njit(parallel=True, fastmath=_FM, cache=True, error_model="numpy")
-def _fwd(col, alpha, bg, y, g, want_grad, x, dmaps, sums):  # pragma: no cover - numba
+def _fwd(col, alpha, bg, y, g, want_grad, x, dmaps, sums, img, img_alpha):  # pragma: no cover - numba
     """SSIM of x = col + (1 - alpha) bg (written to x) against y, interleaved [H, W*3] (alpha
     [H, W], g the window's six distinct taps): sums[i] = (row i's SSIM sum, |x - y| sum,
     (x - y)^2 sum); if want_grad, dmaps[0..2, i] = dS/dmu_x, dS/dE[x^2], dS/dE[x y] per pixel and
-    channel.
+    channel. When img_alpha has rows, y is written first: y = img img_alpha + (1 - img_alpha) bg
+    (img [H, W*3] and img_alpha [H, W] may be views with strided rows, a crop of a whole frame).
 
     Per output row: the five local moments are blurred vertically from the 11 input rows around it
     (which stay in cache from one row to the next), then horizontally, then go straight into the
@@ -109,6 +110,14 @@ def _fwd(col, alpha, bg, y, g, want_grad, x, dmaps, sums):  # pragma: no cover -
             t = _F32(1.0) - ar[p]
             for c in range(_C):
                 xr[p * _C + c] = cr[p * _C + c] + t * bg[c]
+        if img_alpha.shape[0] > 0:
+            ir = img[row]
+            gr = img_alpha[row]
+            for p in range(gr.shape[0]):
+                a = gr[p]
+                t = _F32(1.0) - a
+                for c in range(_C):
+                    yr[p * _C + c] = ir[p * _C + c] * a + t * bg[c]
         s_abs = _F32(0.0)
         s_sq = _F32(0.0)
         for q in range(n):
@@ -232,15 +241,32 @@ def _rows(t: Tensor) -> np.ndarray:
     return a.reshape(a.shape[0], -1)
 
 
-def _run_fwd(col: Tensor, alpha: np.ndarray, bg: np.ndarray, gt: Tensor, want_grad: bool):
+def _strided_rows(t: Tensor) -> np.ndarray:
+    """[H, W, C] float32 tensor, possibly a crop of a larger image -> [H, W*C] array view (no copy when each row's
+    W*C values are contiguous)."""
+    a = t.detach()
+    if a.dtype != torch.float32 or a.stride(-1) != 1 or (a.dim() == 3 and a.stride(-2) != a.shape[-1]):
+        a = a.to(torch.float32).contiguous()
+    a = a.numpy()
+    return a.reshape(a.shape[0], -1)
+
+
+def _run_fwd(col: Tensor, alpha: np.ndarray, bg: np.ndarray, gt: Tensor, want_grad: bool,
+             gt_alpha: Tensor | None = None):
     c = _rows(col)
-    y = _rows(gt)
-    h, n = y.shape
     g = _window()[: _R + 1].copy()  # the six distinct taps of the symmetric window
+    if gt_alpha is None:
+        y = _rows(gt)
+        img, ga = _NO_ALPHA, _NO_ALPHA
+    else:  # the target is composited over bg in the kernel's first pass, straight from the (cropped) frame
+        img = _strided_rows(gt)
+        ga = _strided_rows(gt_alpha)
+        y = np.empty(img.shape, np.float32)
+    h, n = y.shape
     x = np.empty_like(y)
     dmaps = np.empty((3, h, n) if want_grad else (3, 0, 0), np.float32)
     sums = np.zeros((h, 3), np.float32)
-    _fwd(c, alpha, bg, y, g, want_grad, x, dmaps, sums)
+    _fwd(c, alpha, bg, y, g, want_grad, x, dmaps, sums, img, ga)
     tot = sums.astype(np.float64).sum(axis=0) / (h * n)  # mean SSIM, mean |x - y|, mean (x - y)^2
     return x, y, g, dmaps, tot
 
@@ -269,11 +295,11 @@ class _SSIMCPU(torch.autograd.Function):
 
 class _LossCPU(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, color, alpha, bg, gt, lam):
+    def forward(ctx, color, alpha, bg, gt, lam, gt_alpha):
         a = alpha.detach().to(torch.float32).contiguous().numpy().reshape(alpha.shape[0], alpha.shape[1])
         b = bg.detach().to(torch.float32).contiguous().numpy()
         want = bool(ctx.needs_input_grad[0] or ctx.needs_input_grad[1])
-        x, y, g, dmaps, tot = _run_fwd(color, a, b, gt, want)
+        x, y, g, dmaps, tot = _run_fwd(color, a, b, gt, want, gt_alpha)
         if want:
             ctx.saved = (x, b, y, g, dmaps, lam, color.shape, alpha.shape)
         mse = color.new_tensor(float(tot[2]))
@@ -290,7 +316,7 @@ class _LossCPU(torch.autograd.Function):
         _bwd(dmaps, x, y, b, g, _F32(-lam * gl), _F32((1.0 - lam) * gl), dcol, dalpha)
         d_col = torch.from_numpy(dcol).view(cshape).to(g_loss.dtype)
         d_alpha = torch.from_numpy(dalpha).view(ashape).to(g_loss.dtype) if ctx.needs_input_grad[1] else None
-        return d_col, d_alpha, None, None, None
+        return d_col, d_alpha, None, None, None, None
 
 
 def _check(pred: Tensor, gt: Tensor, name: str) -> None:
@@ -316,13 +342,16 @@ def ssim_cpu(pred: Tensor, gt: Tensor) -> Tensor:
 
 
 def photometric_loss_cpu(color: Tensor, alpha: Tensor, bg: Tensor, gt: Tensor,
-                         ssim_lambda: float = 0.2) -> tuple[Tensor, Tensor]:
+                         ssim_lambda: float = 0.2, gt_alpha: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """The 3DGS training loss of a render composited over a background, fused on the CPU.
 
     With ``x = color + (1 - alpha) bg`` (``color`` ``[H, W, 3]``, ``alpha`` ``[H, W, 1]``, ``bg``
     ``[3]``): ``loss = (1 - l) mean|x - gt| + l (1 - SSIM(x, gt))``, differentiable with respect to
     ``color`` and ``alpha``; also the mean squared error (for PSNR; no gradient). Equal to composing
-    the PyTorch operations (tested, values and gradients).
+    the PyTorch operations (tested, values and gradients). With ``gt_alpha`` ``[H, W, 1]`` the target is
+    the frame ``gt`` composited over the same background, ``gt gt_alpha + (1 - gt_alpha) bg`` (object
+    mode), computed in the kernel's first pass; ``gt`` and ``gt_alpha`` may then be crops (views) of
+    whole frames, read without a copy.
 
     Example:
         >>> import torch
@@ -335,7 +364,10 @@ def photometric_loss_cpu(color: Tensor, alpha: Tensor, bg: Tensor, gt: Tensor,
     if tuple(alpha.shape) != (color.shape[0], color.shape[1], 1) or tuple(bg.shape) != (_C,):
         raise ValueError(f"photometric_loss_cpu: need alpha [H, W, 1] and bg [3] for a {list(color.shape)} "
                          f"render, got {list(alpha.shape)} and {list(bg.shape)}")
-    loss, mse = _LossCPU.apply(color, alpha, bg, gt, float(ssim_lambda))
+    if gt_alpha is not None and tuple(gt_alpha.shape) != (color.shape[0], color.shape[1], 1):
+        raise ValueError(f"photometric_loss_cpu: need gt_alpha [H, W, 1] for a {list(color.shape)} render, got "
+                         f"{list(gt_alpha.shape)}")
+    loss, mse = _LossCPU.apply(color, alpha, bg, gt, float(ssim_lambda), gt_alpha)
     return loss.to(color.dtype), mse
 
 

@@ -91,12 +91,12 @@ class DensityStrategy:
             if state["grad2d"] is None or state["grad2d"].shape[0] != n:
                 state["grad2d"] = torch.zeros(n, device=params["means"].device)
                 state["count"] = torch.zeros(n, device=params["means"].device)
-            g = out.means2d.grad.clone()  # [N, 2] d loss / d pixel
-            g[:, 0] *= width / 2.0
-            g[:, 1] *= height / 2.0
+            # d loss / d pixel [N, 2] -> NDC units, accumulated for the Gaussians drawn (masked adds instead of boolean
+            # indexing, which cost ~1 ms a step at 40k Gaussians)
+            g = out.means2d.grad * out.means2d.grad.new_tensor([width / 2.0, height / 2.0])
             vis = (out.radii.reshape(n, -1) > 0).all(dim=-1)  # [N]
-            state["grad2d"][vis] += g[vis].norm(dim=-1)
-            state["count"][vis] += 1
+            state["grad2d"] += torch.where(vis, torch.linalg.vector_norm(g, dim=-1), 0.0)
+            state["count"] += vis
         if (self.refine_start_iter < step < self.refine_stop_iter and step % self.refine_every == 0
                 and step - state["last_reset"] > self.pause_refine_after_reset):
             info["grown"] = self._grow(params, optimizers, state)

@@ -60,6 +60,15 @@ class ImageCache:
         self.views = {v.name: v for v in views}
         self.base_scale = base_scale  # full resolution -> largest training resolution
         self._cache: dict[tuple[str, int], tuple] = {}
+        self._boxes: dict[tuple[str, int], tuple[int, int, int, int]] = {}
+
+    def box(self, name: str, down: int) -> tuple[int, int, int, int]:
+        """:func:`foreground_box` of a view's alpha at one downscale (computed once)."""
+        key = (name, down)
+        if key not in self._boxes:
+            img, alpha = self.get(name, down)[:2]
+            self._boxes[key] = foreground_box(alpha) if alpha is not None else (0, 0, img.shape[1], img.shape[0])
+        return self._boxes[key]
 
     def get(self, name: str, down: int):
         import cv2
@@ -101,10 +110,11 @@ def foreground_box(alpha: torch.Tensor, margin_frac: float = 0.08, min_margin: i
 
 
 def photometric_loss(color: torch.Tensor, alpha: torch.Tensor, bg: torch.Tensor, gt: torch.Tensor,
-                     ssim_lambda: float) -> tuple[torch.Tensor, torch.Tensor]:
+                     ssim_lambda: float, gt_alpha: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The training loss of a render (``color`` ``[H, W, 3]``, ``alpha`` ``[H, W, 1]``) composited
     over ``bg`` ``[3]``: ``(1 - l) L1 + l (1 - SSIM)`` against ``gt``, and the mean squared error
-    (detached, for the progress bar's PSNR).
+    (detached, for the progress bar's PSNR). With ``gt_alpha`` (object mode) the target is ``gt``
+    composited over the same background through it, ``gt gt_alpha + (1 - gt_alpha) bg``.
 
     On the CPU: the fused numba kernels of :mod:`plantsplat.raster.ssim` (compositing, L1, SSIM and
     their gradients in two passes; same value and gradients as the PyTorch composition, tested). The
@@ -113,10 +123,12 @@ def photometric_loss(color: torch.Tensor, alpha: torch.Tensor, bg: torch.Tensor,
     kernels do not give): the PyTorch composition with :func:`plantsplat.train.metrics.ssim`.
     """
     if (color.device.type == "cpu" and gt.device.type == "cpu" and not gt.requires_grad and not bg.requires_grad
-            and color.shape[-1] == 3):
+            and color.shape[-1] == 3 and (gt_alpha is None or not gt_alpha.requires_grad)):
         from plantsplat.raster.ssim import photometric_loss_cpu
 
-        return photometric_loss_cpu(color, alpha, bg, gt, ssim_lambda)
+        return photometric_loss_cpu(color, alpha, bg, gt, ssim_lambda, gt_alpha)
+    if gt_alpha is not None:
+        gt = gt * gt_alpha + (1.0 - gt_alpha) * bg
     pred = color + (1.0 - alpha) * bg
     loss = (1 - ssim_lambda) * (pred - gt).abs().mean() + ssim_lambda * (1 - ssim_torch(pred, gt))
     return loss, ((pred.detach() - gt.detach()) ** 2).mean()
@@ -332,7 +344,7 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
             img, alpha, K, w, h = cache.get(view.name, down)
             viewmat = torch.tensor(view.viewmat, dtype=torch.float32, device=device)
             if object_mode and rc.crop:
-                x0, y0, x1, y1 = foreground_box(alpha)
+                x0, y0, x1, y1 = cache.box(view.name, down)
             else:
                 x0, y0, x1, y1 = 0, 0, w, h
             Kc = K.clone()
@@ -340,9 +352,8 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
             Kc[1, 2] -= y0
             gt = img[y0:y1, x0:x1]  # [h', w', 3]
             bg = torch.from_numpy(rng.random(3)).float().to(device)  # [3] random background each step
-            if object_mode:
-                a = alpha[y0:y1, x0:x1]  # [h', w', 1]
-                gt = gt * a + (1.0 - a) * bg
+            # object mode: the frame composited over bg through its mask (in the loss kernel's first pass on the CPU)
+            gt_alpha = alpha[y0:y1, x0:x1] if object_mode else None  # [h', w', 1]
 
             for o in [optimizers["means"]] + ([occ_opt["means"]] if occ_opt else []):
                 for g in o.param_groups:
@@ -354,7 +365,7 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
             n_model = params["means"].shape[0]
             strategy.step_pre_backward(params, optimizers, state, step, out)
             # render composited over bg, [h', w', 3], against gt: (1 - l) L1 + l (1 - SSIM)
-            loss, mse = photometric_loss(out.color, out.alpha, bg, gt, rc.ssim_lambda)
+            loss, mse = photometric_loss(out.color, out.alpha, bg, gt, rc.ssim_lambda, gt_alpha)
             if not torch.isfinite(loss):
                 _diverged(paths, last_good, None)
             loss.backward()
