@@ -73,16 +73,16 @@ def estimate_intrinsics(
     def K_of(f):
         return np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1]], dtype=np.float64)
 
-    # coarse log-spaced search, then golden-section refinement of the median reprojection error
+    # coarse log-spaced search (on half the sample), then golden-section refinement of the median reprojection error
     fs = np.geomspace(0.3, 4.0, 28) * max(w, h)
-    errs = [_pose_errors(sample, K_of(f), cube) for f in fs]
+    errs = [_pose_errors(sample[::2], K_of(f), cube) for f in fs]
     i = int(np.argmin(errs))
     lo, hi = fs[max(i - 1, 0)], fs[min(i + 1, len(fs) - 1)]
     g = (np.sqrt(5) - 1) / 2
     a, b = lo, hi
     c, d = b - g * (b - a), a + g * (b - a)
     ec, ed = _pose_errors(sample, K_of(c), cube), _pose_errors(sample, K_of(d), cube)
-    for _ in range(10):  # the bracket shrinks to 0.8 % of itself; calibrateCamera refines below
+    for _ in range(6):  # the bracket (two grid steps, 20 % of f) shrinks to 5.6 % of itself; calibrateCamera refines below
         if ec < ed:
             b, d, ed = d, c, ec
             c = b - g * (b - a)
