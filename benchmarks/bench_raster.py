@@ -291,17 +291,14 @@ def main() -> int:
         return 0
 
     sys.path.insert(0, str(ROOT / "src"))
+    import plantsplat  # chooses how OpenMP threads wait (see plantsplat/__init__.py); the children inherit it
     from plantsplat.io import write_json_atomic
 
     info = machine_info()
     results: dict = {"machine": info, "arithmetic_limit_pairs_per_s": arithmetic_limit(info), "cases": {}}
     cases = [c for c in args.cases.split(",") if c]
-    # PyTorch's and numba's OpenMP runtimes each spin-wait after a parallel region; with both in one
-    # process (torch ops between numba kernels) on 2 cores the spinning threads starve the working
-    # ones (measured: a 448 training iteration 0.9 s instead of 0.06 s on the shared machine).
-    child_env = {**os.environ, "PYTHONPATH": str(ROOT / "src"),
-                 "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}
-    results["machine"]["omp_wait_policy"] = child_env["OMP_WAIT_POLICY"]
+    child_env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
+    results["machine"]["omp"] = plantsplat.omp_setting()
     with tempfile.TemporaryDirectory() as tmp:
         points = Path(tmp) / "plant_points.npy"
         if any(c.startswith("plant") for c in cases):

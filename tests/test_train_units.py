@@ -331,22 +331,29 @@ def test_undistortion_applied(tmp_path):
     assert v.dist.size == 0  # pinhole from here on
 
 
-def test_omp_wait_policy_set_before_torch_loads():
-    """Importing plantsplat (as the CLI and plantsplat.train do) sets OMP_WAIT_POLICY=PASSIVE before
-    torch/numba start OpenMP, keeps a user's own value, and tells when torch came first."""
+def test_omp_waiting_set_before_torch_loads():
+    """Importing plantsplat (as the CLI and plantsplat.train do) sets how OpenMP threads wait before torch/numba
+    load OpenMP: a short spin (GOMP_SPINCOUNT) on a machine that is not busy, OMP_WAIT_POLICY=PASSIVE on one whose
+    load already fills the cores; a user's own setting wins; and it tells when torch came first."""
     import os
     import subprocess
     import sys
 
-    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
-    code = ("import sys, os; import plantsplat.cli, plantsplat.train; "
-            "import torch; print(os.environ['OMP_WAIT_POLICY'], plantsplat.omp_wait_policy_note() is None)")
-    run = lambda c, e: subprocess.run([sys.executable, "-c", c], env=e, capture_output=True, text=True,  # noqa: E731
-                                      check=True).stdout.split()
-    assert run(code, env) == ["PASSIVE", "True"]
-    assert run(code, {**env, "OMP_WAIT_POLICY": "ACTIVE"}) == ["ACTIVE", "True"]
-    late = "import os, torch, plantsplat; print(os.environ['OMP_WAIT_POLICY'], plantsplat.omp_wait_policy_note() is None)"
-    assert run(late, env) == ["PASSIVE", "False"]
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    show = ("print(os.environ.get('OMP_WAIT_POLICY'), os.environ.get('GOMP_SPINCOUNT'), "
+            "plantsplat.omp_wait_policy_note() is None)")
+
+    def run(load: float, extra: dict | None = None, first: str = "import plantsplat.cli, plantsplat.train; import torch"):
+        code = f"import os, sys; os.getloadavg = lambda: ({load}, 0.0, 0.0); {first}; import plantsplat; {show}"
+        return subprocess.run([sys.executable, "-c", code], env={**env, **(extra or {})}, capture_output=True,
+                              text=True, check=True).stdout.split()
+
+    cores = os.cpu_count() or 1
+    assert run(0.0) == ["None", "20000", "True"]
+    assert run(cores + 0.5) == ["PASSIVE", "None", "True"]
+    assert run(0.0, {"OMP_WAIT_POLICY": "ACTIVE"}) == ["ACTIVE", "None", "True"]
+    assert run(cores + 0.5, {"GOMP_SPINCOUNT": "500"}) == ["None", "500", "True"]
+    assert run(0.0, first="import torch") == ["None", "20000", "False"]
 
 
 def test_visual_hull_keeps_an_object_hidden_from_some_views():

@@ -3,32 +3,59 @@
 import os as _os
 import sys as _sys
 
-# OpenMP wait policy, set before anything imports torch or numba. PyTorch (its bundled libgomp) and
-# numba's "omp" threading layer (the system libgomp) each keep their own OpenMP thread pool, and by
-# default (ACTIVE) idle OpenMP threads spin for a while after every parallel region. On a 2-core
-# machine the two pools then steal the cores from each other: a 448 px training iteration took 0.9 s
-# instead of 0.057 s, and a 600-step object-mode run on a 270x480 capture 0.111 s/step (86 CPU-s)
-# instead of 0.061 s/step (37 CPU-s) with PASSIVE. libgomp reads the variable once, when the library
-# is loaded (i.e. at `import torch` / the first numba parallel kernel), so it has to be in the
-# environment before those imports: every entry point (the `plantsplat` CLI, `python -m plantsplat`,
-# `import plantsplat.train`) imports this package first. setdefault: a user's own setting wins.
-_OMP_PRESET = "OMP_WAIT_POLICY" in _os.environ
+# OpenMP waiting, set before anything imports torch or numba. libgomp (PyTorch's, which numba's "omp"
+# threading layer shares once torch is loaded) reads it once, when the library is loaded (at `import torch` /
+# the first numba parallel kernel), so it has to be in the environment before those imports: every entry point
+# (the `plantsplat` CLI, `python -m plantsplat`, `import plantsplat.train`) imports this package first.
+#
+# A training step runs dozens of short parallel kernels with single-threaded torch work between them. Idle
+# OpenMP threads that spin a little before they sleep pick the next kernel up at once; threads that sleep at
+# once (OMP_WAIT_POLICY=PASSIVE) must be woken for each. Threads that spin long (libgomp's default) starve
+# everything else when the cores are already busy. Measured (object mode, 800 steps of the training
+# benchmark's seed 0, 2 cores): idle machine PASSIVE 43 s, GOMP_SPINCOUNT=20000 28 s, 3000 32 s, libgomp's
+# default 27 s; with two busy processes beside it PASSIVE 45 s, 20000 78 s, 3000 60 s, default 154 s. So:
+# a short spin when the machine is not busy at import, PASSIVE when its load already fills the cores. A
+# user's own OMP_WAIT_POLICY or GOMP_SPINCOUNT wins.
+_OMP_SPIN = "20000"
+_OMP_PRESET = "OMP_WAIT_POLICY" in _os.environ or "GOMP_SPINCOUNT" in _os.environ
 # importing numba alone is harmless (its OpenMP pool loads with the first parallel kernel)
 _OMP_TOO_LATE = not _OMP_PRESET and ("torch" in _sys.modules or "numba.np.ufunc.omppool" in _sys.modules)
-_os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+def _busy() -> bool:
+    try:
+        return _os.getloadavg()[0] >= (_os.cpu_count() or 1)
+    except (AttributeError, OSError):  # no load average (Windows)
+        return False
+
+
+if not _OMP_PRESET:
+    if _busy():
+        _os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+    else:
+        _os.environ["GOMP_SPINCOUNT"] = _OMP_SPIN
+
+
+def omp_setting() -> str:
+    """How OpenMP threads wait in this process (for logs and result files)."""
+    if _OMP_TOO_LATE:
+        return "libgomp default (torch/numba imported before plantsplat)"
+    keys = [k for k in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT") if k in _os.environ]
+    how = ", ".join(f"{k}={_os.environ[k]}" for k in keys)
+    return how + (" (set by the user)" if _OMP_PRESET else " (chosen at import)")
 
 
 def omp_wait_policy_note() -> str | None:
-    """Why the OpenMP wait policy may not be PASSIVE in this process, or ``None`` when it is set.
+    """Why OpenMP may not wait as plantsplat chose in this process, or ``None`` when it does.
 
-    torch or numba imported before plantsplat (without ``OMP_WAIT_POLICY`` in the environment) have
-    already initialised OpenMP with the default spinning policy; training can then run ~2x slower on
-    few cores.
+    torch or numba imported before plantsplat (without ``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` in the
+    environment) have already initialised OpenMP with libgomp's default, long spinning; training can then run
+    several times slower when other processes keep the cores busy.
     """
     if _OMP_TOO_LATE:
-        return ("torch/numba were imported before plantsplat, so OpenMP threads spin between parallel "
-                "regions (slow on few cores); set OMP_WAIT_POLICY=PASSIVE in the environment, or import "
-                "plantsplat first")
+        return ("torch/numba were imported before plantsplat, so OpenMP threads spin long between parallel "
+                "regions (slow when the cores are busy); set GOMP_SPINCOUNT=20000 (or OMP_WAIT_POLICY=PASSIVE) in "
+                "the environment, or import plantsplat first")
     return None
 
 

@@ -104,6 +104,9 @@ def machine_info() -> dict:
         except Exception:
             versions[mod] = None
     info["versions"] = versions
+    import plantsplat
+
+    info["omp"] = plantsplat.omp_setting()
     try:
         import torch
 
