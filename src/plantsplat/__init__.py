@@ -3,17 +3,18 @@
 import os as _os
 import sys as _sys
 
-# OpenMP waiting, set before anything imports torch or numba. libgomp (PyTorch's, which numba's "omp"
-# threading layer shares once torch is loaded) reads it once, when the library is loaded (at `import torch` /
-# the first numba parallel kernel), so it has to be in the environment before those imports: every entry point
-# (the `plantsplat` CLI, `python -m plantsplat`, `import plantsplat.train`) imports this package first.
+# OpenMP waiting, set before anything imports torch or numba. Each libgomp (PyTorch's bundled one, and the system's
+# that numba's "omp" threading layer loads) reads it once, when it is loaded (at `import torch` / the first numba
+# parallel kernel), so it has to be in the environment before those imports: every entry point (the `plantsplat`
+# CLI, `python -m plantsplat`, `import plantsplat.train`) imports this package first.
 #
 # A training step runs dozens of short parallel kernels with single-threaded torch work between them. Idle
 # OpenMP threads that spin a little before they sleep pick the next kernel up at once; threads that sleep at
 # once (OMP_WAIT_POLICY=PASSIVE) must be woken for each. Threads that spin long (libgomp's default) starve
 # everything else when the cores are already busy. Measured (object mode, 800 steps of the training
-# benchmark's seed 0, 2 cores): idle machine PASSIVE 43 s, GOMP_SPINCOUNT=20000 28 s, 3000 32 s, libgomp's
-# default 27 s; with two busy processes beside it PASSIVE 45 s, 20000 78 s, 3000 60 s, default 154 s. So:
+# benchmark's seed 0, 2 cores): idle machine PASSIVE 28-43 s, GOMP_SPINCOUNT=20000 22-28 s, 3000 32 s, libgomp's
+# default long spin in PyTorch's pool (numba's asleep at once) 27 s; with two busy processes beside it PASSIVE 45 s,
+# 20000 78 s, 3000 60 s, that default 154 s. So:
 # a short spin when the machine is not busy at import, PASSIVE when its load already fills the cores. A
 # user's own OMP_WAIT_POLICY or GOMP_SPINCOUNT wins.
 _OMP_SPIN = "20000"
