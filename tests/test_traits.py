@@ -161,6 +161,33 @@ def test_uncalibrated_cloud_scaled_and_levelled_by_the_cube():
     assert _rel(res.traits["canopy_volume_cm3"], truth["canopy_volume_cm3"]) < 0.03
 
 
+def test_gaussian_cube_measured_by_its_envelope_not_its_sunken_planes():
+    """A splat's faces are drawn by the outer layer of Gaussians that fill up to ~1 cm inside them:
+    plane fits through the face Gaussians sink inside, the envelope does not. With opacities (a
+    Gaussian export) the cube is measured by its envelope and the right ArUco scale passes."""
+    pts, cols, plant = make_plant_scene(seed=5, floaters=False)
+    rng = np.random.default_rng(5)
+    cube = np.flatnonzero(~plant)  # the cube's surface points (the scene has no floaters)
+    # push each cube point inside along its face's inward normal by 0..0.8 cm; keep 5 % on the surface
+    local = pts[cube] - [0.0, 0.0, 5.0]  # cube centre at the origin
+    ax = np.abs(local).argmax(1)
+    depth = np.where(rng.random(len(cube)) < 0.05, 0.0, rng.uniform(0.0, 0.8, len(cube)))
+    inward = -np.sign(local[np.arange(len(cube)), ax])
+    pts = pts.copy()
+    pts[cube, ax] += inward * depth
+    res = measure_traits(pts, cols, calibrated=True, opacity=np.ones(len(pts)))
+    assert res.scale["cube_edge_method"] == "envelope"
+    assert abs(res.scale["aruco_vs_cube_pct"]) < 1.0, res.scale
+    assert res.scale["cube_edge_cm_planes"] < 9.6  # the planes sank inside
+    assert not any("ArUco" in r for r in res.reasons), res.reasons
+    assert abs(res.scale["cube_bottom_z_cm"]) < 0.2  # 2 % of the edge
+    planes = measure_traits(pts, cols, calibrated=True, opacity=np.ones(len(pts)),
+                            settings=TraitSettings(cube_edge="planes"))
+    assert planes.scale["cube_edge_method"] == "planes" and any("ArUco" in r for r in planes.reasons)
+    # without opacities or extent samples (any point cloud) 'auto' fits planes
+    assert measure_traits(pts, cols, calibrated=True).scale["cube_edge_method"] == "planes"
+
+
 def test_scale_disagreement_is_reported_and_flagged():
     pts, cols, _ = make_plant_scene(seed=4, floaters=False)
     res = measure_traits(pts * 1.06, cols, calibrated=True)  # a 6 % wrong ArUco scale
@@ -291,7 +318,7 @@ def test_traits_command_bad_input_one_line_error(tmp_path, capsys):
     ws.mkdir()
     assert main(["traits", str(ws)]) == 1  # no export yet
     err = capsys.readouterr().err
-    assert "points.ply" in err and "plantsplat export" in err and "Traceback" not in err
+    assert "splat.ply" in err and "plantsplat export" in err and "Traceback" not in err
     # an unscaled cloud without a cube: failed traits.json, non-zero exit, no numbers
     pts, cols, plant = make_plant_scene(seed=9, floaters=False)
     _write_points_ply(ws / "export" / "points.ply", pts[plant] * 0.2, cols[plant], np.ones(int(plant.sum())))
@@ -348,7 +375,8 @@ def test_traits_command_unscaled_workspace_uses_cube_and_cameras(tmp_path):
     (ws / "transforms.json").write_text(json.dumps({"frames": frames}))
     assert main(["traits", str(ws), "--no-figure"]) == 0
     out = json.loads((ws / "traits.json").read_text())
-    assert out["scale_source"] == "cube_planes" and out["quality"] == "ok", out["quality_reasons"]
+    # points.ply carries opacities: a Gaussian export, so the cube is measured by its envelope
+    assert out["scale_source"] == "cube_envelope" and out["quality"] == "ok", out["quality_reasons"]
     assert out["scale"]["up_method"].startswith("cameras")
     assert _rel(out["width1_cm"], traitdefs.pca_widths(pts[plant])[0]) < 0.01
     assert _rel(out["height_cm"], traitdefs.plant_height(pts[plant])) < 0.01

@@ -18,9 +18,11 @@ class TraitsConfig:
     Writes WS/traits.json, WS/traits.csv and WS/traits.png."""
 
     workspace: tyro.conf.Positional[Path]
-    """Plant workspace folder (reads export/points.ply and poses.json)."""
+    """Plant workspace folder (reads export/splat.ply, or export/points.ply with --extent-sigma 0,
+    and poses.json)."""
     points: Path | None = None
-    """Measure this PLY point cloud instead of WS/export/points.ply (x, y, z; colours and opacity optional)."""
+    """Measure this PLY instead of the workspace's export: a splat.ply (its Gaussians' extents are sampled) or any
+    point cloud (x, y, z; colours and opacity optional)."""
     calibrated: bool | None = None
     """Whether the cloud is in the ArUco-calibrated frame (cm, z up). Default: from WS/poses.json scale_source."""
     figure: bool = True

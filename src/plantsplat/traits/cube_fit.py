@@ -118,6 +118,9 @@ class CubeFit:
             "up": None if self.up is None else self.up.tolist(),
             "up_method": self.up_method,
             "up_confident": self.up_confident,
+            "edge_method": self.extra.get("edge_method", "planes"),
+            **{k: self.extra[k] for k in ("edge_planes", "edge_per_axis_planes", "envelope_quantile")
+               if k in self.extra},
             "faces_fitted": len(self.faces),
             "plane_rms": self.plane_rms,
             "faces": [
@@ -492,6 +495,34 @@ def decide_up(
     fit.up_axis, fit.up = ax, s * fit.axes[ax]
     fit.up_method = f"unseen bottom face (its point count is {ratio:.0%} of the top's)"
     fit.up_confident = ratio < 0.3
+    return fit
+
+
+def use_envelope(fit: CubeFit, points: np.ndarray, q: float = 0.01) -> CubeFit:
+    """Measure the cube by the envelope of its points instead of its faces' planes (in place).
+
+    A Gaussian-splat reconstruction fills the inside of an opaque face with Gaussians (only the
+    outermost layer is seen), so the least-squares planes through a face's Gaussians lie inside the
+    face: on synthetic captures with known cubes, 0.2-0.4 cm per face, a 10 cm cube measuring 9.2-9.6
+    cm. The outer envelope is unbiased: along each fitted axis the edge is the extent between the
+    ``q`` and ``1 - q`` quantiles of ``points [N, 3]`` (the cube cluster, best with the Gaussians'
+    extents sampled), and the centre is that extent's midpoint (the hidden bottom face is bounded by
+    the side faces reaching the ground). The planes' values stay in ``fit.extra``.
+
+    Example:
+        >>> rng = np.random.default_rng(0)
+        >>> pts = cube_surface_points(10.0, 6000, rng, faces=("+x", "-x", "+y", "-y", "top"))
+        >>> fit = use_envelope(fit_cube_planes(pts, size_hint=10.0), pts, q=0.0)
+        >>> round(fit.edge, 2), fit.extra["edge_method"]
+        (10.0, 'envelope')
+    """
+    proj = np.asarray(points, dtype=np.float64) @ fit.axes.T  # [N, 3] coordinates along the cube axes
+    lo, hi = np.quantile(proj, [q, 1.0 - q], axis=0)  # [3], [3]
+    fit.extra.update({"edge_planes": fit.edge, "edge_per_axis_planes": list(fit.edge_per_axis),
+                      "centre_planes": fit.centre.tolist(), "edge_method": "envelope", "envelope_quantile": q})
+    fit.edge_per_axis = [float(e) for e in hi - lo]
+    fit.edge = float(np.mean(hi - lo))
+    fit.centre = np.linalg.solve(fit.axes, (lo + hi) / 2.0)
     return fit
 
 

@@ -1,14 +1,17 @@
 """Plant traits from a point cloud: cluster, find and measure the cube, select the plant, measure.
 
 The library entry point is :func:`measure_traits` (any point cloud, calibrated or not); the CLI
-stage's is :func:`traits_workspace` (reads ``WS/export/points.ply``, writes ``WS/traits.json``,
-``traits.csv`` and ``traits.png``).
+stage's is :func:`traits_workspace` (reads ``WS/export/splat.ply``, the Gaussians with their extents
+sampled, or ``WS/export/points.ply``, their centres; writes ``WS/traits.json``, ``traits.csv`` and
+``traits.png``).
 
 Steps (the paper's section 2.4, with the additions the issue asks for):
 
 1. DBSCAN clustering (:mod:`plantsplat.traits.cluster`), radius from the data.
 2. The cube: the cluster whose oriented bounding box looks like a cube; its edge from the distances
-   between its opposite faces' fitted planes (:mod:`plantsplat.traits.cube_fit`).
+   between its opposite faces' fitted planes (:mod:`plantsplat.traits.cube_fit`), or for Gaussian
+   reconstructions from its points' envelope along the planes' axes (their faces' Gaussians fill the
+   inside of the faces, so the planes lie inside).
 3. Scale and frame. *Calibrated* clouds (the poses stage's ArUco calibration: cm, z up, origin under
    the cube) keep their frame; the cube planes cross-check the scale (their disagreement is reported)
    and the vertical. *Uncalibrated* clouds are scaled by ``10 cm / l_hat`` and moved into the cube's
@@ -43,6 +46,7 @@ import io
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -114,9 +118,15 @@ class TraitSettings:
     """Minimum points of one fruit."""
     fruit_min_size_cm: float = 0.8
     """Minimum extent of one fruit (cm)."""
-    extent_sigma: float = 0.0
+    extent_sigma: float = 2.0
     """0: measure the Gaussians' centres (the paper). > 0: also use the 6 ends of each Gaussian's principal
-    axes at this many standard deviations (read from export/splat.ply), so that the Gaussians' extents count."""
+    axes at this many standard deviations (read from export/splat.ply), so that the Gaussians' extents count:
+    a reconstruction's Gaussians sit inside the surfaces they draw, so their centres underestimate every trait."""
+    cube_edge: Literal["auto", "planes", "envelope"] = "auto"
+    """How the cube's edge is measured: 'planes' (mean distance between opposite faces' fitted planes: exact on
+    surface samples), 'envelope' (the 1 %..99 % extent of the cube's points along its axes: Gaussian
+    reconstructions, whose faces' planes lie inside the faces) or 'auto' (envelope for Gaussians, that is when
+    opacities or extent samples come with the points; planes otherwise)."""
     seed: int = 0
     """Random seed (subsampling, RANSAC)."""
 
@@ -274,6 +284,7 @@ def measure_traits(
         decide_up,
         find_cube_cluster,
         fit_cube_planes,
+        use_envelope,
     )
 
     s = settings or TraitSettings()
@@ -330,10 +341,15 @@ def measure_traits(
             labels, eps, cube_label, cands = labels2, eps2, lab2, cands2
             notes.append(f"the cube touched another cluster; clustered again with half the radius ({eps2:.3g})")
     cube_fit = None
+    if s.cube_edge not in ("auto", "planes", "envelope"):
+        raise ValueError(f"cube_edge must be 'auto', 'planes' or 'envelope', got {s.cube_edge!r}")
+    envelope = s.cube_edge == "envelope" or (s.cube_edge == "auto" and (opacity is not None or centre_mask is not None))
     if cube_label is not None:
         cube_fit = fit_cube_planes(pts[labels == cube_label], size_hint=size if calibrated else None, seed=s.seed)
         if cube_fit is None:
             reasons.append("the cube cluster was found but no pair of opposite faces could be fitted")
+        elif envelope:
+            use_envelope(cube_fit, pts[labels == cube_label])
     timings["cube"] = time.perf_counter() - t1
     cand_info = [
         {"label": c.label, "points": c.points, "extents": np.round(c.extents, 4).tolist(), "accepted": c.accepted,
@@ -352,13 +368,16 @@ def measure_traits(
         if cube_fit is not None:
             decide_up(cube_fit, reference_up=np.array([0.0, 0.0, 1.0]))
             edge_cm = cube_fit.edge
+            planes_cm = cube_fit.extra.get("edge_planes", edge_cm)
             dis = (edge_cm / size - 1.0) * 100.0
             tilt = float(np.degrees(np.arccos(np.clip(abs(cube_fit.up[2]), -1, 1))))
-            scale.update({"cube_edge_cm_planes": edge_cm, "planes_scale": size / edge_cm,
-                          "aruco_vs_planes_pct": dis, "cube_tilt_deg": tilt,
+            method = "envelope" if envelope else "planes"
+            scale.update({"cube_edge_cm": edge_cm, "cube_edge_method": method, "aruco_vs_cube_pct": dis,
+                          "cube_edge_cm_planes": planes_cm, "planes_scale": size / planes_cm,
+                          "aruco_vs_planes_pct": (planes_cm / size - 1.0) * 100.0, "cube_tilt_deg": tilt,
                           "cube_bottom_z_cm": float(cube_fit.bottom_centre[2])})
             if abs(dis) > s.scale_tolerance_pct:
-                reasons.append(f"the cube measures {edge_cm:.2f} cm by its planes, {dis:+.1f} % off the ArUco scale "
+                reasons.append(f"the cube measures {edge_cm:.2f} cm by its {method}, {dis:+.1f} % off the ArUco scale "
                                f"(tolerance {s.scale_tolerance_pct} %): check the calibration")
             if tilt > s.max_tilt_deg:
                 reasons.append(f"the cube's vertical is {tilt:.1f} deg from the frame's z axis: heights may be off")
@@ -374,7 +393,8 @@ def measure_traits(
             )
         decide_up(cube_fit, camera_centres=camera_centres)
         T, sc = cube_frame_transform(cube_fit, size)
-        scale.update({"source": "cube_planes", "scale": sc, "cube_edge_units": cube_fit.edge,
+        scale.update({"source": "cube_envelope" if envelope else "cube_planes", "scale": sc,
+                      "cube_edge_units": cube_fit.edge, "cube_edge_method": "envelope" if envelope else "planes",
                       "up_method": cube_fit.up_method})
         if not cube_fit.up_confident:
             reasons.append(f"the vertical direction is uncertain ({cube_fit.up_method}): check the side view")
@@ -518,6 +538,15 @@ def read_splat_extent_cloud(path: str | Path, opacity_min: float, k_sigma: float
             "gaussians": int(keep.sum())}
 
 
+def _is_splat_ply(path: Path) -> bool:
+    """True when the PLY's header has an Inria-layout Gaussian's scales, rotation and DC colour."""
+    with open(path, "rb") as f:
+        head = f.read(16384)
+    end = head.find(b"end_header")
+    names = {ln.split()[-1] for ln in head[: max(end, 0)].split(b"\n") if ln.startswith(b"property")}
+    return {b"scale_0", b"rot_0", b"f_dc_0", b"opacity"} <= names
+
+
 def read_points_ply(path: str | Path) -> dict[str, np.ndarray | None]:
     """Read an exported point cloud: ``{'xyz' [N, 3], 'rgb' [N, 3] uint8 | None, 'opacity' [N] | None,
     'scales' [N, 3] | None}``. Accepts plantsplat's ``points.ply`` and any PLY with x, y, z vertices.
@@ -551,11 +580,11 @@ def read_points_ply(path: str | Path) -> dict[str, np.ndarray | None]:
 def traits_csv_text(result_json: dict, plant: str) -> str:
     """One header line and one row: plant, the six traits, robust height/widths, scale, quality."""
     cols = ["plant", *traitdefs.TRAIT_KEYS, *(f"robust_{k}" for k in ROBUST_KEYS), "scale_source",
-            "aruco_vs_planes_pct", "quality", "quality_reasons"]
+            "aruco_vs_cube_pct", "quality", "quality_reasons"]
     sc = result_json.get("scale") or {}
     row = [plant, *(result_json.get(k) for k in traitdefs.TRAIT_KEYS),
            *((result_json.get("robust") or {}).get(k) for k in ROBUST_KEYS), sc.get("source"),
-           sc.get("aruco_vs_planes_pct"), result_json.get("quality"), " | ".join(result_json.get("quality_reasons", []))]
+           sc.get("aruco_vs_cube_pct"), result_json.get("quality"), " | ".join(result_json.get("quality_reasons", []))]
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(cols)
@@ -598,9 +627,20 @@ def traits_workspace(ws, cfg=None, *, points_path: str | Path | None = None, cal
 
     ws = ws if isinstance(ws, Workspace) else Workspace(ws)
     s = cfg if isinstance(cfg, TraitSettings) else TraitSettings()
-    ply = Path(points_path) if points_path else (ws.splat_ply if s.extent_sigma > 0 else ws.points_ply)
-    if not points_path:
+    if points_path:
+        ply = Path(points_path)
+        if not ply.is_file():
+            raise PlantsplatError(f"{ply}: point cloud not found; give an exported points.ply or splat.ply")
+        extents = s.extent_sigma > 0 and _is_splat_ply(ply)
+    elif s.extent_sigma > 0 and (ws.splat_ply.is_file() or not ws.points_ply.is_file()):
+        ply, extents = ws.splat_ply, True
         ws.require(ply, "export")
+    else:
+        ply, extents = ws.points_ply, False
+        ws.require(ply, "export")
+        if s.extent_sigma > 0:
+            log.warning("traits: %s is missing, so the Gaussians' extents are not sampled (centres only, which "
+                        "underestimates the traits); re-run `plantsplat export %s`", ws.splat_ply, ws.root)
     if calibrated is None:
         if ws.poses_json.is_file():
             src = read_json(ws.poses_json).get("scale_source", "none")
@@ -610,7 +650,7 @@ def traits_workspace(ws, cfg=None, *, points_path: str | Path | None = None, cal
                 f"{ws.poses_json}: missing, so the cloud's scale is unknown; run `plantsplat poses {ws.root}` "
                 "or pass --calibrated / --no-calibrated"
             )
-    if s.extent_sigma > 0:
+    if extents:
         data = read_splat_extent_cloud(ply, s.opacity_min, s.extent_sigma)
         log.info("traits: %s (%d Gaussians with their extents at %.2g sigma)", ply, data["gaussians"], s.extent_sigma)
     else:
