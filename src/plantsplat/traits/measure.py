@@ -170,8 +170,10 @@ class TraitResult:
                 "notes": self.notes,
                 "robust": {k: self.robust.get(k) for k in ROBUST_KEYS} | {"trim": self.settings.get("trim")},
                 "method": (
-                    "DBSCAN (Open3D) clustering; cube = cluster with a cube-like oriented bounding box, edge from "
-                    "RANSAC+least-squares planes of opposite faces; plant = largest other cluster plus nearby "
+                    "DBSCAN (Open3D) clustering; cube = cluster with a cube-like oriented bounding box, axes from "
+                    "RANSAC+least-squares planes of its faces, edge from the distance between opposite planes or, "
+                    "for Gaussians, the 1-99 % envelope along the axes (scale.cube_edge_method); points = Gaussian "
+                    "centres plus their axis ends at settings.extent_sigma; plant = largest other cluster plus nearby "
                     "clusters; height = z extent, widths = extents along the PCA axes of the ground-projected "
                     "points, canopy volume/area = 3D/2D convex hull, fruit = clusters of red points"
                 ),
