@@ -519,7 +519,7 @@ def use_envelope(fit: CubeFit, points: np.ndarray, q: float = 0.01) -> CubeFit:
     proj = np.asarray(points, dtype=np.float64) @ fit.axes.T  # [N, 3] coordinates along the cube axes
     lo, hi = np.quantile(proj, [q, 1.0 - q], axis=0)  # [3], [3]
     fit.extra.update({"edge_planes": fit.edge, "edge_per_axis_planes": list(fit.edge_per_axis),
-                      "centre_planes": fit.centre.tolist(), "edge_method": "envelope", "envelope_quantile": q})
+                      "edge_method": "envelope", "envelope_quantile": q})
     fit.edge_per_axis = [float(e) for e in hi - lo]
     fit.edge = float(np.mean(hi - lo))
     fit.centre = np.linalg.solve(fit.axes, (lo + hi) / 2.0)

@@ -346,6 +346,7 @@ def measure_traits(
     if s.cube_edge not in ("auto", "planes", "envelope"):
         raise ValueError(f"cube_edge must be 'auto', 'planes' or 'envelope', got {s.cube_edge!r}")
     envelope = s.cube_edge == "envelope" or (s.cube_edge == "auto" and (opacity is not None or centre_mask is not None))
+    edge_method = "envelope" if envelope else "planes"
     if cube_label is not None:
         cube_fit = fit_cube_planes(pts[labels == cube_label], size_hint=size if calibrated else None, seed=s.seed)
         if cube_fit is None:
@@ -373,14 +374,13 @@ def measure_traits(
             planes_cm = cube_fit.extra.get("edge_planes", edge_cm)
             dis = (edge_cm / size - 1.0) * 100.0
             tilt = float(np.degrees(np.arccos(np.clip(abs(cube_fit.up[2]), -1, 1))))
-            method = "envelope" if envelope else "planes"
-            scale.update({"cube_edge_cm": edge_cm, "cube_edge_method": method, "aruco_vs_cube_pct": dis,
+            scale.update({"cube_edge_cm": edge_cm, "cube_edge_method": edge_method, "aruco_vs_cube_pct": dis,
                           "cube_edge_cm_planes": planes_cm, "planes_scale": size / planes_cm,
                           "aruco_vs_planes_pct": (planes_cm / size - 1.0) * 100.0, "cube_tilt_deg": tilt,
                           "cube_bottom_z_cm": float(cube_fit.bottom_centre[2])})
             if abs(dis) > s.scale_tolerance_pct:
-                reasons.append(f"the cube measures {edge_cm:.2f} cm by its {method}, {dis:+.1f} % off the ArUco scale "
-                               f"(tolerance {s.scale_tolerance_pct} %): check the calibration")
+                reasons.append(f"the cube measures {edge_cm:.2f} cm by its {edge_method}, {dis:+.1f} % off the ArUco "
+                               f"scale (tolerance {s.scale_tolerance_pct} %): check the calibration")
             if tilt > s.max_tilt_deg:
                 reasons.append(f"the cube's vertical is {tilt:.1f} deg from the frame's z axis: heights may be off")
         else:
@@ -395,8 +395,8 @@ def measure_traits(
             )
         decide_up(cube_fit, camera_centres=camera_centres)
         T, sc = cube_frame_transform(cube_fit, size)
-        scale.update({"source": "cube_envelope" if envelope else "cube_planes", "scale": sc,
-                      "cube_edge_units": cube_fit.edge, "cube_edge_method": "envelope" if envelope else "planes",
+        scale.update({"source": f"cube_{edge_method}", "scale": sc, "cube_edge_units": cube_fit.edge,
+                      "cube_edge_method": edge_method,
                       "up_method": cube_fit.up_method})
         if not cube_fit.up_confident:
             reasons.append(f"the vertical direction is uncertain ({cube_fit.up_method}): check the side view")
