@@ -334,7 +334,8 @@ def test_traits_command_bad_input_one_line_error(tmp_path, capsys):
 
 def test_extent_sampling_from_splat_ply(tmp_path):
     """--extent-sigma: Gaussians' axis ends count. Each plant point becomes a flat Gaussian whose
-    largest axis is along z with sigma 0.25 cm, so the height grows by 2 * k_sigma * 0.25 cm."""
+    largest axis is along z with sigma 0.25 cm, so the height grows by 2 * k_sigma * 0.25 cm. At 0 the
+    centres alone count, and the PLY's opacity is still read as a logit (the plant's -1 is 0.27, kept)."""
     from plantsplat.cli import main
     from plantsplat.train.export import write_splat_ply
 
@@ -346,7 +347,7 @@ def test_extent_sampling_from_splat_ply(tmp_path):
     sh0 = ((cols / 255.0) - 0.5) / 0.28209479177387814
     ws = tmp_path / "ws"
     write_splat_ply(ws / "export" / "splat.ply", pts, np.log(sig), np.tile([1.0, 0, 0, 0], (n, 1)),
-                    np.full(n, 4.0), sh0[:, None, :], np.zeros((n, 0, 3)))
+                    np.where(plant, -1.0, 4.0), sh0[:, None, :], np.zeros((n, 0, 3)))
     (ws / "poses.json").write_text(json.dumps({"scale_source": "aruco"}))
     assert main(["traits", str(ws), "--extent-sigma", "2", "--no-figure"]) == 0
     out = json.loads((ws / "traits.json").read_text())
@@ -354,6 +355,11 @@ def test_extent_sampling_from_splat_ply(tmp_path):
     assert out["height_cm"] == pytest.approx(h0 + 1.0, rel=0.01)
     assert out["quality"] == "ok", out["quality_reasons"]
     assert out["fruit_count"] == 3  # colours from the SH DC term
+    assert main(["traits", str(ws), "--points", str(ws / "export" / "splat.ply"), "--extent-sigma", "0",
+                 "--no-figure"]) == 0
+    out = json.loads((ws / "traits.json").read_text())
+    assert out["height_cm"] == pytest.approx(h0, rel=0.01)
+    assert out["quality"] == "ok", out["quality_reasons"]
 
 
 def test_traits_command_unscaled_workspace_uses_cube_and_cameras(tmp_path):

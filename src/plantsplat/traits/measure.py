@@ -523,7 +523,8 @@ def gaussian_extent_points(
 
 def read_splat_extent_cloud(path: str | Path, opacity_min: float, k_sigma: float) -> dict[str, np.ndarray]:
     """Point cloud of the opaque Gaussians of an Inria-layout ``splat.ply`` with their extents
-    (see :func:`gaussian_extent_points`); colours from the SH DC term."""
+    (see :func:`gaussian_extent_points`; ``k_sigma`` 0: the centres alone); colours from the SH DC term.
+    The PLY's opacity is a logit: it is mapped through the sigmoid before ``opacity_min`` applies."""
     from plantsplat.train.export import read_splat_ply
 
     g = read_splat_ply(path)
@@ -531,12 +532,13 @@ def read_splat_extent_cloud(path: str | Path, opacity_min: float, k_sigma: float
     keep = op >= opacity_min
     means = np.asarray(g["means"], np.float64)[keep]
     scales = np.exp(np.asarray(g["scales"], np.float64)[keep])
-    pts = gaussian_extent_points(means, scales, np.asarray(g["quats"])[keep], k_sigma)
+    pts = gaussian_extent_points(means, scales, np.asarray(g["quats"])[keep], k_sigma) if k_sigma > 0 else means
     rgb = np.clip(0.5 + 0.28209479177387814 * np.asarray(g["sh0"], np.float64)[keep, 0, :], 0, 1)
     rgb = np.round(rgb * 255).astype(np.uint8)
     centre = np.zeros(len(pts), bool)
     centre[: len(means)] = True
-    return {"xyz": pts, "rgb": np.tile(rgb, (7, 1)), "opacity": None, "scales": None, "centre": centre,
+    return {"xyz": pts, "rgb": np.tile(rgb, (len(pts) // max(len(means), 1), 1)), "opacity": None, "scales": None,
+            "centre": centre,
             "gaussians": int(keep.sum())}
 
 
@@ -633,7 +635,7 @@ def traits_workspace(ws, cfg=None, *, points_path: str | Path | None = None, cal
         ply = Path(points_path)
         if not ply.is_file():
             raise PlantsplatError(f"{ply}: point cloud not found; give an exported points.ply or splat.ply")
-        extents = s.extent_sigma > 0 and _is_splat_ply(ply)
+        extents = _is_splat_ply(ply)  # a splat PLY is read as Gaussians (its opacity is a logit), at any sigma
     elif s.extent_sigma > 0 and (ws.splat_ply.is_file() or not ws.points_ply.is_file()):
         ply, extents = ws.splat_ply, True
         ws.require(ply, "export")
@@ -654,7 +656,8 @@ def traits_workspace(ws, cfg=None, *, points_path: str | Path | None = None, cal
             )
     if extents:
         data = read_splat_extent_cloud(ply, s.opacity_min, s.extent_sigma)
-        log.info("traits: %s (%d Gaussians with their extents at %.2g sigma)", ply, data["gaussians"], s.extent_sigma)
+        log.info("traits: %s (%d Gaussians%s)", ply, data["gaussians"],
+                 f" with their extents at {s.extent_sigma:.2g} sigma" if s.extent_sigma > 0 else ", centres only")
     else:
         data = read_points_ply(ply)
     log.info("traits: %s (%d points, %s)", ply, len(data["xyz"]), "calibrated cm" if calibrated else "unscaled")
