@@ -461,3 +461,38 @@ def test_guided_filter_matches_windowed_least_squares():
     m = np.zeros((8, 16), np.float32)
     m[:, 7:] = 1.0  # the mask's edge one pixel off the image's
     assert ((guided_filter(g, m, 2, 1e-3) > 0.5) == (g > 0.5)).all()
+
+
+def test_thin_stem_coloured_runs_attached_to_the_plant_are_plant():
+    """A brown-olive petiole (not a foliage colour) leaving a leaf is plant; a wide region of the same colour touching
+    the leaf (soil, wood) and a stem-like run that touches nothing are not; off with ``stem_px=0``, and for a
+    background colour."""
+    from plantsplat.segment.classic import _NBINS, ClassicSegmenter, _colour_bins
+
+    img = np.full((200, 260, 3), 128, np.uint8)  # grey backdrop
+    brown = (70, 55, 18)
+    cv2.circle(img, (60, 100), 35, (40, 120, 35), -1)  # leaf
+    cv2.line(img, (90, 100), (200, 40), brown, 5)  # petiole from the leaf's edge
+    img[150:195, 70:130] = brown  # wide brown region touching the leaf
+    cv2.line(img, (150, 190), (250, 120), brown, 5)  # a run of stem colour touching nothing
+    stem = np.zeros(img.shape[:2], np.uint8)
+    cv2.line(stem, (100, 95), (195, 43), 1, 3)  # the petiole's core, away from the leaf
+    lone = np.zeros(img.shape[:2], np.uint8)
+    cv2.line(lone, (155, 187), (245, 123), 1, 3)
+    wide = np.zeros(img.shape[:2], bool)
+    wide[160:190, 80:125] = True
+    roi = np.ones(img.shape[:2], bool)
+
+    def plant(stem_px):
+        seg = ClassicSegmenter(ClassicSettings(stem_px=stem_px, edge_radius=0))
+        seg._bg_learned = True  # a background learned from a capture without any of these colours
+        seg._bg_ring = np.zeros(_NBINS, bool)
+        return seg._plant_in_box(img, roi, None, 540, 960)
+
+    on, off = plant(4.0), plant(0.0)
+    assert on[stem > 0].mean() > 0.95 and off[stem > 0].mean() < 0.2
+    assert on[wide].mean() < 0.02 and not on[lone > 0].any()
+    seg = ClassicSegmenter(ClassicSettings(stem_px=4.0, edge_radius=0))
+    seg._bg_learned, seg._bg_ring = True, np.zeros(_NBINS, bool)
+    seg._bg_ring[_colour_bins(np.array([[brown]], np.uint8))[0, 0]] = True  # the brown is the room's
+    assert seg._plant_in_box(img, roi, None, 540, 960)[stem > 0].mean() < 0.2

@@ -9,7 +9,10 @@ plant tissue (they seed the plant), *weak* pixels are accepted only where they t
   brightness so that near-black noise is not classified;
 - red/pink fruit: high-saturation red hue (HSV), which excludes brownish soil and pale pots;
 - white/cream flowers and yellow flower centres: only weak (they are also the colour of walls and
-  of the cube) and thus accepted only next to strong plant tissue.
+  of the cube) and thus accepted only next to strong plant tissue;
+- stems (:func:`stem_colour_mask`): saturated olive, brown and red-brown (petiole bases, peduncles,
+  runners), which soil, wood and terracotta share; the segmenter accepts them only as thin runs
+  attached to the plant.
 
 Example:
     >>> import numpy as np
@@ -51,6 +54,11 @@ class ColourModel:
     white_sat: int = 50
     """Weak white (flowers): saturation at most this and value at least ``white_value``."""
     white_value: int = 165
+    stem_hue: tuple[int, int] = (5, 30)
+    """Stem colours: hue in this range (red-brown to olive; it overlaps the foliage hues, where brownish olive fails the
+    ExG - ExR test)..."""
+    stem_sat: int = 100
+    """...with at least this saturation (and ``min_value``): grey-brown dust and shadows are not stems."""
 
 
 def plant_colour_masks(
@@ -95,3 +103,21 @@ def plant_colour_masks(
     if with_red:
         return strong, weak, pale, red_weak & ~green_weak & ~green_strong
     return strong, weak, pale
+
+
+def stem_colour_mask(rgb: np.ndarray, model: ColourModel = ColourModel()) -> np.ndarray:
+    """Stem-coloured pixels of an RGB uint8 image ``[H, W, 3]``: saturated olive, brown or red-brown
+    (``model.stem_hue``, ``model.stem_sat``, ``model.min_value``), bool ``[H, W]``.
+
+    Example:
+        >>> import numpy as np
+        >>> bool(stem_colour_mask(np.full((1, 1, 3), (70, 55, 18), np.uint8))[0, 0])  # brown petiole base
+        True
+        >>> bool(stem_colour_mask(np.full((1, 1, 3), (120, 110, 100), np.uint8))[0, 0])  # grey-brown
+        False
+    """
+    import cv2
+
+    hsv = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2HSV)
+    h, s, v = hsv[..., 0], hsv[..., 1], hsv[..., 2]
+    return (h >= model.stem_hue[0]) & (h < model.stem_hue[1]) & (s >= model.stem_sat) & (v >= model.min_value)
