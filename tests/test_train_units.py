@@ -339,9 +339,9 @@ def test_omp_waiting_set_before_torch_loads():
     import subprocess
     import sys
 
-    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "PLANTSPLAT_OMP_CHOICE")}
     show = ("print(os.environ.get('OMP_WAIT_POLICY'), os.environ.get('GOMP_SPINCOUNT'), "
-            "plantsplat.omp_wait_policy_note() is None)")
+            "plantsplat.omp_wait_policy_note() is None, plantsplat.omp_setting().split(' (')[1].split()[0])")
 
     def run(load: float, extra: dict | None = None, first: str = "import plantsplat.cli, plantsplat.train; import torch"):
         code = f"import os, sys; os.getloadavg = lambda: ({load}, 0.0, 0.0); {first}; import plantsplat; {show}"
@@ -349,11 +349,15 @@ def test_omp_waiting_set_before_torch_loads():
                               text=True, check=True).stdout.split()
 
     cores = os.cpu_count() or 1
-    assert run(0.0) == ["None", "20000", "True"]
-    assert run(cores + 0.5) == ["PASSIVE", "None", "True"]
-    assert run(0.0, {"OMP_WAIT_POLICY": "ACTIVE"}) == ["ACTIVE", "None", "True"]
-    assert run(cores + 0.5, {"GOMP_SPINCOUNT": "500"}) == ["None", "500", "True"]
-    assert run(0.0, first="import torch") == ["None", "20000", "False"]
+    assert run(0.0) == ["None", "20000", "True", "chosen"]
+    assert run(cores + 0.5) == ["PASSIVE", "None", "True", "chosen"]
+    assert run(0.0, {"OMP_WAIT_POLICY": "ACTIVE"}) == ["ACTIVE", "None", "True", "set"]
+    assert run(cores + 0.5, {"GOMP_SPINCOUNT": "500"}) == ["None", "500", "True", "set"]
+    # a batch worker inherits its parent's choice (and says so); a user's value beside a stale record is the user's
+    chosen = {"GOMP_SPINCOUNT": "20000", "PLANTSPLAT_OMP_CHOICE": "GOMP_SPINCOUNT=20000"}
+    assert run(cores + 0.5, chosen) == ["None", "20000", "True", "chosen"]
+    assert run(0.0, {**chosen, "GOMP_SPINCOUNT": "500"}) == ["None", "500", "True", "set"]
+    assert run(0.0, first="import torch")[:3] == ["None", "20000", "False"]
 
 
 def test_visual_hull_keeps_an_object_hidden_from_some_views():

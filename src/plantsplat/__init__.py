@@ -18,7 +18,16 @@ import sys as _sys
 # a short spin when the machine is not busy at import, PASSIVE when its load already fills the cores. A
 # user's own OMP_WAIT_POLICY or GOMP_SPINCOUNT wins.
 _OMP_SPIN = "20000"
-_OMP_PRESET = "OMP_WAIT_POLICY" in _os.environ or "GOMP_SPINCOUNT" in _os.environ
+_OMP_KEYS = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
+_OMP_CHOICE_VAR = "PLANTSPLAT_OMP_CHOICE"  # what a plantsplat process chose, so its workers can tell it from a user's
+
+
+def _omp_env() -> str:
+    return ", ".join(f"{k}={_os.environ[k]}" for k in _OMP_KEYS if k in _os.environ)
+
+
+_OMP_PRESET = any(k in _os.environ for k in _OMP_KEYS)
+_OMP_INHERITED = _OMP_PRESET and _os.environ.get(_OMP_CHOICE_VAR) == _omp_env()
 # importing numba alone is harmless (its OpenMP pool loads with the first parallel kernel)
 _OMP_TOO_LATE = not _OMP_PRESET and ("torch" in _sys.modules or "numba.np.ufunc.omppool" in _sys.modules)
 
@@ -35,15 +44,16 @@ if not _OMP_PRESET:
         _os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
     else:
         _os.environ["GOMP_SPINCOUNT"] = _OMP_SPIN
+    _os.environ[_OMP_CHOICE_VAR] = _omp_env()
 
 
 def omp_setting() -> str:
     """How OpenMP threads wait in this process (for logs and result files)."""
     if _OMP_TOO_LATE:
         return "libgomp default (torch/numba imported before plantsplat)"
-    keys = [k for k in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT") if k in _os.environ]
-    how = ", ".join(f"{k}={_os.environ[k]}" for k in keys)
-    return how + (" (set by the user)" if _OMP_PRESET else " (chosen at import)")
+    if _OMP_INHERITED:
+        return _omp_env() + " (chosen by the parent plantsplat process)"
+    return _omp_env() + (" (set by the user)" if _OMP_PRESET else " (chosen at import)")
 
 
 def omp_wait_policy_note() -> str | None:
