@@ -221,6 +221,17 @@ def _small_size(w: int, h: int, longest: int) -> tuple[int, int, float]:
     return max(1, int(round(w * s))), max(1, int(round(h * s))), s
 
 
+def _components_with(mask: np.ndarray, marker: np.ndarray) -> np.ndarray:
+    """The 8-connected components of the bool ``mask`` that contain a pixel of ``marker``: bool, same shape."""
+    import cv2
+
+    n, lab = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    ok = np.zeros(n, bool)
+    ok[np.unique(lab[marker & mask])] = True
+    ok[0] = False
+    return ok[lab]
+
+
 def _disk(r: float):
     import cv2
 
@@ -571,8 +582,6 @@ class ClassicSegmenter:
             k_thin = 2 * max(1, int(round(s.thin_px * max(H, W) / 960))) + 1
             keep = cv2.blur(bgc, (k_thin, k_thin)) < 0.5
             strong, weak, pale, red_only = strong & keep, weak & keep, pale & keep, red_only & keep
-        else:
-            bg_colour = np.zeros((Hb, Wb), bool)
         if pot is not None and not self._bg_learned:
             roi = roi & ~pot
         # seeds: strong colour over a k x k neighbourhood (k = 2 px at 480, 3 px at 960): noisy pixels of green
@@ -587,12 +596,7 @@ class ClassicSegmenter:
         # strong pixels join wherever they connect to a seed (thin petioles and peduncles, too narrow to seed)
         grow = band | strong
         for cand, sd in (((weak & ~red_only & roi & grow), seeds & ~red_only), ((red_only & roi & grow), red_seeds)):
-            n, lab = cv2.connectedComponents(cand.astype(np.uint8), connectivity=8)
-            if n > 1:
-                has_seed = np.zeros(n, bool)
-                has_seed[np.unique(lab[sd & cand])] = True
-                has_seed[0] = False
-                plant |= has_seed[lab]
+            plant |= _components_with(cand, sd)
         # fruit- and flower-sized blobs of weak or pale colour touching the plant (unripe fruit, petals):
         # accepted whole, unlike large weak regions which only count within the band around strong seeds
         if plant.any():
@@ -614,13 +618,7 @@ class ClassicSegmenter:
             cand = ((weak | stem_colour_mask(rgb, s.colour)) & ~bg_colour & roi & ~plant).astype(np.uint8)
             wide = cv2.dilate(cv2.morphologyEx(cand, cv2.MORPH_OPEN, _disk(r)), _disk(1))
             thin = (cand > 0) & (wide == 0)
-            n5, lab5 = cv2.connectedComponents(thin.astype(np.uint8), connectivity=8)
-            if n5 > 1:
-                touch = cv2.dilate(plant.astype(np.uint8), _disk(2)).astype(bool)
-                ok = np.zeros(n5, bool)
-                ok[np.unique(lab5[touch & thin])] = True
-                ok[0] = False
-                plant |= ok[lab5]
+            plant |= _components_with(thin, cv2.dilate(plant.astype(np.uint8), _disk(2)).astype(bool))
         # specks out, pinholes in
         n3, lab3, st3, _ = cv2.connectedComponentsWithStats(plant.astype(np.uint8), connectivity=8)
         if n3 > 1:
