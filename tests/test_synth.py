@@ -377,3 +377,33 @@ def test_frames_are_well_exposed_across_seeds(tmp_path):
             assert 40 < img.mean() < 200, (seed, i, img.mean())
             assert img.std() > 15 and (img.max(axis=2) < 3).mean() < 0.05, (seed, i)
             assert 0.005 < (mask == 255).mean() < 0.6, (seed, i)
+
+
+def test_object_renders_are_the_plant_and_cube_alone(tmp_path):
+    """objects/ holds the foreground meshes alone over black: on a clean capture they equal the frame inside the
+    mask (away from its outline, where the frame mixes in the room), the frames and masks are those of a capture
+    without the option, and outside the mask they are black wherever no plant or cube part lies behind the pot."""
+    import cv2
+
+    from plantsplat.synth import SynthConfig, generate
+
+    kw = dict(seed=3, frames=4, width=180, height=320, clean=True)
+    a = generate(SynthConfig(out=tmp_path / "a", object_renders=True, **kw))["out"]
+    b = generate(SynthConfig(out=tmp_path / "b", **kw))["out"]
+    assert not (b / "objects").exists()
+    gt = _gt(a)
+    for fr in gt["frames"]:
+        assert (a / fr["file"]).read_bytes() == (b / fr["file"]).read_bytes()
+        assert (a / fr["mask"]).read_bytes() == (b / fr["mask"]).read_bytes()
+        obj = cv2.imread(str(a / fr["object"])).astype(int)
+        img = cv2.imread(str(a / fr["file"])).astype(int)
+        m = cv2.imread(str(a / fr["mask"]), cv2.IMREAD_GRAYSCALE) > 127
+        inner = cv2.erode(m.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        assert inner.sum() > 50
+        # same lighting and shadows; a few pixels differ where a stem or the cube meets the soil or the platform
+        assert (np.abs(obj - img).max(axis=-1)[inner] <= 2).mean() > 0.99
+        ring = cv2.dilate(m.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        outside = obj[~ring].max(axis=-1)
+        assert (outside == 0).mean() > 0.95  # the room is not drawn
+        assert img[~ring].max(axis=-1).mean() > 20  # ...while the frame shows it
+    assert "objects" in gt["render"]

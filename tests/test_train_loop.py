@@ -67,6 +67,8 @@ def test_loss_goes_down_and_metrics_written(trained):
     assert m["mode"] == "object" and m["n_test_views"] == len(read_json(ws.train_dir / "split.json")["test"])
     # foreground PSNR from the file agrees with the per-view rows, and is far above a blank render's
     assert m["foreground"]["psnr"] == pytest.approx(np.mean([r["foreground"]["psnr"] for r in m["per_view"]]))
+    inner = [r["foreground"]["psnr_interior"] for r in m["per_view"] if r["foreground"]["psnr_interior"] is not None]
+    assert inner and m["foreground"]["psnr_interior"] == pytest.approx(np.mean(inner))
     assert m["composite"]["psnr"] > 17.0
     assert m["render_fps"] > 0 and m["n_gaussians"] == summary["n_gaussians"]
     assert m["lpips_weights"] is None or 0.0 < m["composite"]["lpips"] < 1.0

@@ -44,6 +44,22 @@ def test_psnr_ssim_against_references():
         -10 * np.log10(mse_top), rel=1e-5)
 
 
+def test_mask_interior_is_an_erosion():
+    """The evaluation's mask interior equals OpenCV's erosion by a (2 px + 1) square (the image's border is no
+    outline: the frame's edge does not mix the object with the room)."""
+    import cv2
+
+    from plantsplat.train.metrics import mask_interior
+
+    rng = np.random.default_rng(1)
+    m = (cv2.GaussianBlur(rng.random((60, 70)), (0, 0), 3) > 0.5).astype(np.uint8)
+    m[:, :5] = 1  # a run along the border
+    for px in (1, 2):
+        ref = cv2.erode(m, np.ones((2 * px + 1, 2 * px + 1), np.uint8))
+        got = mask_interior(torch.from_numpy(m).float()[..., None], px)[..., 0].numpy()
+        assert 0 < ref.sum() < m.sum() and np.array_equal(got.astype(np.uint8), ref)
+
+
 def test_ssim_gradient_flows():
     from plantsplat.train.metrics import ssim
 

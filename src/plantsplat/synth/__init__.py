@@ -37,6 +37,9 @@ class SynthConfig:
     """Write into a non-empty --out folder (files are overwritten one by one; nothing else is deleted)."""
     clean: bool = False
     """Skip the sensor model (noise, motion blur, exposure drift, vignetting): ideal frames, for debugging."""
+    object_renders: bool = False
+    """Also write objects/: the plant and the cube alone over black, without the sensor model, at the capture's base
+    exposure: what an exact object-centric model would render (the trainer benchmark's ceiling)."""
     crf: int = 18
     """H.264 constant rate factor (lower = better quality, bigger file)."""
     msaa: int = 4

@@ -27,6 +27,9 @@ WORLD_FRAME = ("origin on the ground plane (top of the platform the pot and cube
 CAMERA_CONVENTION = "camera-to-world 4x4, OpenCV camera axes (x right, y down, z forward), cm"
 PIXEL_CONVENTION = ("OpenCV: pixel (u, v) has its centre at integer coordinates, u to the right, v down, (0, 0) = "
                     "centre of the top-left pixel; [u, v, 1] ~ K X_cam")
+OBJECTS_RULE = ("colour pass of the foreground meshes (plant, cube) alone over black, lit and shadowed as in the "
+                "frame, developed without noise, blur, exposure or white-balance drift or vignetting at the capture's "
+                "base gain, with the frames' MSAA")
 MASK_RULE = ("id pass without MSAA: a pixel is 255 when the surface seen through the pixel centre belongs to the "
              "plant (leaf, petiole, crown, fruit with calyx, peduncle, flower) or the cube, else 0")
 
@@ -91,7 +94,7 @@ def _remove_stale_frames(out: Path, n: int) -> None:
         return
     if not isinstance(old, dict) or old.get("format") != FORMAT:
         return
-    for sub in ("frames", "masks"):
+    for sub in ("frames", "masks", "objects"):
         for p in (out / sub).glob("frame_*.png"):
             stem = p.stem.split("_")[-1]
             if stem.isdigit() and int(stem) >= n:
@@ -120,6 +123,8 @@ def generate(cfg: SynthConfig) -> dict:
     _remove_stale_frames(out, cfg.frames)
     (out / "frames").mkdir(exist_ok=True)
     (out / "masks").mkdir(exist_ok=True)
+    if cfg.object_renders:
+        (out / "objects").mkdir(exist_ok=True)
     s_scene, s_tex, s_cam, s_sensor, s_gt, s_noise = np.random.SeedSequence(cfg.seed).spawn(6)
     cube = CubeSpec()
 
@@ -161,7 +166,9 @@ def generate(cfg: SynthConfig) -> dict:
     t = time.perf_counter()
     renderer = Renderer(scene["meshes"], layers, intr, scene["lights"], samples=cfg.msaa,
                         shadow_radius=scene["platform"]["radius_cm"] + 100.0,
-                        shadow_size=4096 if max(cfg.width, cfg.height) > 720 else 2048)
+                        shadow_size=4096 if max(cfg.width, cfg.height) > 720 else 2048,
+                        object_classes=FOREGROUND_CLASSES if cfg.object_renders else ())
+    ideal = SensorModel.draw(np.random.default_rng(0), cfg.frames, clean=True)  # develops objects/
     timings["gl_setup_s"] = time.perf_counter() - t
     log.info("rendering %d frames at %dx%d (%s)", cfg.frames, cfg.width, cfg.height, renderer.ctx.info["GL_RENDERER"])
     axis_pt = np.array([[0.0, 0.0, pot.soil_z]])
@@ -183,6 +190,7 @@ def generate(cfg: SynthConfig) -> dict:
             t1 = time.perf_counter()
             if i == 0:
                 sensor.calibrate(linear)
+                ideal.base_gain = sensor.base_gain
             j0, j1 = max(i - 1, 0), min(i + 1, cfg.frames - 1)
             motion = axis_uv[j1] - axis_uv[j0]
             rgb = sensor.develop(linear, i, np.random.default_rng([s_noise.entropy, i]),
@@ -194,6 +202,9 @@ def generate(cfg: SynthConfig) -> dict:
             name = IMAGE_PATTERN.format(i)
             pending.append(pool.submit(write_image_atomic, out / "frames" / name, rgb))
             pending.append(pool.submit(write_image_atomic, out / "masks" / name, mask))
+            if cfg.object_renders:
+                obj = ideal.develop(renderer.render_objects(c2ws[i]), i, np.random.default_rng(0))
+                pending.append(pool.submit(write_image_atomic, out / "objects" / name, obj))
             vw.write(rgb)
             t_render += t1 - t0
             t_dev += t2 - t1
@@ -201,7 +212,9 @@ def generate(cfg: SynthConfig) -> dict:
             fg_frac.append(float(mask.mean() / 255))
             if i in preview_idx:
                 previews.append(_preview_tile(rgb, mask, visible, rings[i]))
-            frames_json.append(dict(index=i, file=f"frames/{name}", mask=f"masks/{name}", time_s=i / FPS, ring=rings[i],
+            frames_json.append(dict(index=i, file=f"frames/{name}", mask=f"masks/{name}",
+                                    **({"object": f"objects/{name}"} if cfg.object_renders else {}),
+                                    time_s=i / FPS, ring=rings[i],
                                     c2w=c2ws[i], cube_markers_visible=visible,
                                     motion_blur_px=float(sensor.blur_px[i]),
                                     exposure_ev=float(sensor.exposure_ev[i]),
@@ -243,6 +256,7 @@ def generate(cfg: SynthConfig) -> dict:
         frames=frames_json, cube=cube_info, fps=FPS,
         render=dict(renderer=f"moderngl {gl_renderer} (EGL)", msaa_samples=int(cfg.msaa), mask_rule=MASK_RULE,
                     clean=bool(cfg.clean), sensor=sensor.settings(), video=video_settings,
+                    **({"objects": OBJECTS_RULE} if cfg.object_renders else {}),
                     texture_layer_size=int(layers.shape[1])),
         versions=_versions(),
         timings_s=timings,
@@ -251,6 +265,7 @@ def generate(cfg: SynthConfig) -> dict:
     log.info("wrote %s in %.1f s (render %.1f s)", out, timings["total_s"], t_render)
     return dict(out=out, paths=dict(video=video_path, frames=out / "frames", masks=out / "masks",
                                     plant_gt=out / "plant_gt.ply", scene_gt=out / "scene_gt.ply",
-                                    ground_truth=out / "ground_truth.json", preview=out / "preview.png"),
+                                    ground_truth=out / "ground_truth.json", preview=out / "preview.png",
+                                    **({"objects": out / "objects"} if cfg.object_renders else {})),
                 timings=timings, traits=traits, frames=cfg.frames)
 

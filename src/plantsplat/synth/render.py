@@ -155,7 +155,8 @@ class Renderer:
     """Owns one headless GL context, the scene's buffers, the texture array and the shadow map."""
 
     def __init__(self, meshes: list[Mesh], layers: np.ndarray, intr: dict, lights: dict, samples: int = 4,
-                 shadow_centre=(0.0, 0.0, 10.0), shadow_radius: float = 150.0, shadow_size: int = 4096):
+                 shadow_centre=(0.0, 0.0, 10.0), shadow_radius: float = 150.0, shadow_size: int = 4096,
+                 object_classes: tuple[int, ...] = ()):
         import moderngl
 
         try:
@@ -178,6 +179,11 @@ class Renderer:
         self.prog_id = ctx.program(vertex_shader=_VS, fragment_shader=_FS_ID)
         self.vao = ctx.vertex_array(self.prog, [(self.vbo, fmt, *names)], self.ibo, skip_errors=True)
         self.vao_id = ctx.vertex_array(self.prog_id, [(self.vbo, fmt, *names)], self.ibo, skip_errors=True)
+        self.vao_obj = None  # the meshes of `object_classes` alone, for render_objects
+        if object_classes:
+            ov, of = _pack([m for m in meshes if m.cls in object_classes])
+            self.vbo_obj, self.ibo_obj = ctx.buffer(ov.tobytes()), ctx.buffer(of.tobytes())
+            self.vao_obj = ctx.vertex_array(self.prog, [(self.vbo_obj, fmt, *names)], self.ibo_obj, skip_errors=True)
         # shadow casters: everything but the room shell
         casters = [m for m in meshes if m.cls not in (WALL, FLOOR)]
         cv, cf = _pack(casters)
@@ -225,25 +231,42 @@ class Renderer:
 
         ctx = self.ctx
         W, H = self.intr["width"], self.intr["height"]
-        w2c = np.linalg.inv(c2w)
-        mvp = (self.P @ w2c).T.astype("f4").tobytes()
-        ctx.enable(moderngl.DEPTH_TEST)
-        ctx.disable(moderngl.CULL_FACE)
-        self.tex.use(0)
-        self.shadow.use(1)
-        self.prog["u_mvp"].write(mvp)
-        _set(self.prog, "u_eye", tuple(float(x) for x in c2w[:3, 3]))
-        self.fbo_ms.use()
-        self.fbo_ms.clear(0.0, 0.0, 0.0, 1.0, depth=1.0)
-        self.vao.render(moderngl.TRIANGLES)
-        ctx.copy_framebuffer(self.fbo_res, self.fbo_ms)
-        rgb = np.frombuffer(self.fbo_res.read(components=3, dtype="f4"), dtype="f4").reshape(H, W, 3)[::-1]
+        mvp = self._mvp(c2w)
+        rgb = self._colour(c2w, self.vao)
         self.prog_id["u_mvp"].write(mvp)
         self.fbo_id.use()
         self.fbo_id.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         self.vao_id.render(moderngl.TRIANGLES)
         ids = np.frombuffer(self.fbo_id.read(components=1, dtype="f1"), dtype=np.uint8).reshape(H, W)[::-1]
         return np.ascontiguousarray(rgb), np.ascontiguousarray(ids)
+
+    def render_objects(self, c2w: np.ndarray) -> np.ndarray:
+        """The colour pass of the ``object_classes`` meshes alone over black (linear RGB ``[H, W, 3]``; lit and
+        shadowed as in :meth:`render`, so they match it wherever nothing of the rest stands in front)."""
+        if self.vao_obj is None:
+            raise ValueError("Renderer(..., object_classes=...) was not given")
+        return self._colour(c2w, self.vao_obj)
+
+    def _mvp(self, c2w: np.ndarray) -> bytes:
+        return (self.P @ np.linalg.inv(c2w)).T.astype("f4").tobytes()
+
+    def _colour(self, c2w: np.ndarray, vao) -> np.ndarray:
+        import moderngl
+
+        ctx = self.ctx
+        W, H = self.intr["width"], self.intr["height"]
+        ctx.enable(moderngl.DEPTH_TEST)
+        ctx.disable(moderngl.CULL_FACE)
+        self.tex.use(0)
+        self.shadow.use(1)
+        self.prog["u_mvp"].write(self._mvp(c2w))
+        _set(self.prog, "u_eye", tuple(float(x) for x in c2w[:3, 3]))
+        self.fbo_ms.use()
+        self.fbo_ms.clear(0.0, 0.0, 0.0, 1.0, depth=1.0)
+        vao.render(moderngl.TRIANGLES)
+        ctx.copy_framebuffer(self.fbo_res, self.fbo_ms)
+        rgb = np.frombuffer(self.fbo_res.read(components=3, dtype="f4"), dtype="f4").reshape(H, W, 3)[::-1]
+        return np.ascontiguousarray(rgb)
 
     def release(self) -> None:
         self.ctx.release()

@@ -52,6 +52,22 @@ def psnr(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None)
     return -10.0 * torch.log10(mse.clamp_min(1e-12))
 
 
+def mask_interior(mask: torch.Tensor, px: int = 2) -> torch.Tensor:
+    """The pixels of ``mask`` ``[H, W, 1]`` (> 0.5) whose ``(2 px + 1)``-square neighbourhood, within the image,
+    lies inside it, as ``[H, W, 1]`` float: the foreground without its outline, where a frame's pixels mix the
+    object with what is behind it (the image's border is no such outline).
+
+    Example:
+        >>> import torch
+        >>> m = torch.zeros(9, 9, 1); m[1:8, 1:8] = 1
+        >>> int(mask_interior(m, 2).sum())  # the 7 x 7 square loses a 2 px ring
+        9
+    """
+    inside = (mask[..., 0] > 0.5).float()[None, None]  # [1, 1, H, W]
+    eroded = -torch.nn.functional.max_pool2d(-inside, 2 * px + 1, stride=1, padding=px)
+    return eroded[0, 0, :, :, None]
+
+
 def _gaussian_window(size: int = 11, sigma: float = 1.5, dtype=torch.float32) -> torch.Tensor:
     x = torch.arange(size, dtype=dtype) - (size - 1) / 2.0
     g = torch.exp(-(x**2) / (2 * sigma**2))
