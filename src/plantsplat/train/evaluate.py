@@ -10,7 +10,7 @@ background ``B``:
   box with both images composited over ``B`` through the mask. ``psnr_interior``: PSNR over the mask
   without its 2 px outline (:func:`~plantsplat.train.metrics.mask_interior`). A frame's outline pixels
   mix the object with the room behind it, which no object model renders, and they carry much of the
-  foreground's error (on our synthetic captures an exact render of the plant and cube alone scores
+  foreground's error (on seed 0 of the training benchmark an exact render of the plant and cube alone scores
   about 6 dB less there than inside).
 - ``pbr`` (full mode with masks, the paper's post-background-removal baseline): the full model's
   render with the mask applied after training, against the frame composited over ``B``.
