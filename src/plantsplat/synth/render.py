@@ -229,11 +229,9 @@ class Renderer:
         """Render one view: ``(linear RGB [H, W, 3] float32, class ids [H, W] uint8)``, rows top-down."""
         import moderngl
 
-        ctx = self.ctx
         W, H = self.intr["width"], self.intr["height"]
-        mvp = self._mvp(c2w)
         rgb = self._colour(c2w, self.vao)
-        self.prog_id["u_mvp"].write(mvp)
+        self.prog_id["u_mvp"].write(self._mvp(c2w))
         self.fbo_id.use()
         self.fbo_id.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         self.vao_id.render(moderngl.TRIANGLES)
