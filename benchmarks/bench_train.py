@@ -97,7 +97,7 @@ def object_ceiling(ws: Workspace, cap: Path, split_path: Path) -> dict:
     import cv2
     import torch
 
-    from plantsplat.train.metrics import mask_interior, psnr, ssim
+    from plantsplat.train.evaluate import foreground_scores
 
     gt = read_json(cap / "ground_truth.json")
     objects = {Path(fr["file"]).name: cap / fr["object"] for fr in gt["frames"]}
@@ -109,10 +109,11 @@ def object_ceiling(ws: Workspace, cap: Path, split_path: Path) -> dict:
         a = torch.from_numpy(m).float()[..., None] / 255.0
         img, obj = (torch.from_numpy(np.ascontiguousarray(cv2.imread(str(f))[..., ::-1])).float() / 255.0
                     for f in (ws.images_dir / name, objects[name]))
-        inner = mask_interior(a)
-        rows.append({"psnr": float(psnr(obj, img * a, a)), "ssim": float(ssim(obj, img * a, a)),
-                     "psnr_interior": float(psnr(obj, img * a, inner)) if float(inner.sum()) > 0 else np.nan})
-    return {k: float(np.nanmean([r[k] for r in rows])) for k in rows[0]} | {"n_test_views": len(rows)} if rows else {}
+        rows.append(foreground_scores(obj, img * a, a))
+    if not rows:
+        return {}
+    return {k: float(np.mean([r[k] for r in rows if r[k] is not None] or [np.nan])) for k in rows[0]} | \
+        {"n_test_views": len(rows)}
 
 
 def run_modes(ws: Workspace, iterations: int | None, max_res: int | None, modes=("object", "full")) -> dict:

@@ -113,12 +113,8 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
             if alpha is not None and float(alpha.sum()) > 0:
                 pred_m = pred * alpha + (1 - alpha) * bg
                 x0, y0, x1, y1 = _box(alpha)
-                inner = mask_interior(alpha)
-                row["foreground"] = {
-                    "psnr": float(psnr(pred, gt_fg, alpha)), "ssim": float(ssim(pred, gt_fg, alpha)),
-                    "lpips": lpips(net, pred_m[y0:y1, x0:x1], gt_fg[y0:y1, x0:x1]),
-                    "psnr_interior": float(psnr(pred, gt_fg, inner)) if float(inner.sum()) > 0 else None,
-                }
+                row["foreground"] = foreground_scores(pred, gt_fg, alpha)
+                row["foreground"]["lpips"] = lpips(net, pred_m[y0:y1, x0:x1], gt_fg[y0:y1, x0:x1])
                 if not object_mode:
                     row["pbr"] = {"psnr": float(psnr(pred_m, gt_fg)), "ssim": float(ssim(pred_m, gt_fg)),
                                   "lpips": lpips(net, pred_m, gt_fg)}
@@ -164,6 +160,14 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
              c["psnr"], c["ssim"], _fmt(c["lpips"]), _fmt(f.get("psnr")), _fmt(f.get("ssim")),
              metrics["render_fps"] or 0, metrics_path)
     return metrics
+
+
+def foreground_scores(pred: torch.Tensor, gt_fg: torch.Tensor, alpha: torch.Tensor) -> dict:
+    """PSNR and SSIM of a render ``pred`` ``[h, w, 3]`` against the frame composited through its mask ``gt_fg`` over
+    the mask ``alpha`` ``[h, w, 1]``, and the PSNR over the mask's interior (None when the mask has none)."""
+    inner = mask_interior(alpha)
+    return {"psnr": float(psnr(pred, gt_fg, alpha)), "ssim": float(ssim(pred, gt_fg, alpha)),
+            "psnr_interior": float(psnr(pred, gt_fg, inner)) if float(inner.sum()) > 0 else None}
 
 
 def _to_u8(img: torch.Tensor):
