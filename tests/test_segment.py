@@ -496,3 +496,36 @@ def test_thin_stem_coloured_runs_attached_to_the_plant_are_plant():
     seg._bg_learned, seg._bg_ring = True, np.zeros(_NBINS, bool)
     seg._bg_ring[_colour_bins(np.array([[brown]], np.uint8))[0, 0]] = True  # the brown is the room's
     assert seg._plant_in_box(img, roi, None, 540, 960)[stem > 0].mean() < 0.2
+
+
+def test_fruit_colours_where_the_fruit_hull_projects_are_fruit():
+    """Where the fruit hull projects, a dark red and a pale unripe fruit hanging apart from the leaves are plant, even
+    when the room shows their colours; a wall of the unripe colour reaching beyond that region is not, and without the
+    region neither fruit is taken."""
+    from plantsplat.segment.classic import _NBINS, ClassicSegmenter, _colour_bins
+
+    img = np.full((240, 300, 3), 70, np.uint8)  # dark backdrop (a pot)
+    red, unripe = (110, 12, 20), (190, 196, 140)  # shaded ripe fruit (too dark to seed), unripe cream-green fruit
+    cv2.circle(img, (60, 60), 35, (40, 120, 35), -1)  # leaf
+    cv2.ellipse(img, (70, 170), (12, 18), 0, 0, 360, red, -1)
+    cv2.ellipse(img, (140, 170), (12, 18), 0, 0, 360, unripe, -1)
+    img[100:240, 220:300] = unripe  # a beige wall, its corner inside the fruit region
+    fruit = np.zeros(img.shape[:2], bool)
+    fruit[140:200, 50:160] = True
+    fruit[100:130, 200:240] = True
+    fr = np.zeros(img.shape[:2], np.uint8)
+    cv2.ellipse(fr, (70, 170), (9, 15), 0, 0, 360, 1, -1)
+    fu = np.zeros(img.shape[:2], np.uint8)
+    cv2.ellipse(fu, (140, 170), (9, 15), 0, 0, 360, 1, -1)
+    wall = np.zeros(img.shape[:2], bool)
+    wall[100:240, 220:300] = True
+    seg = ClassicSegmenter(ClassicSettings(edge_radius=0))
+    seg._bg_learned, seg._bg_ring = True, np.zeros(_NBINS, bool)
+    seg._bg_ring[_colour_bins(np.array([[red, unripe]], np.uint8))[0]] = True  # both colours are the room's too
+    roi = np.ones(img.shape[:2], bool)
+    on = seg._plant_in_box(img, roi, None, 540, 960, fruit)
+    off = seg._plant_in_box(img, roi, None, 540, 960, None)
+    assert on[fr > 0].mean() > 0.95 and on[fu > 0].mean() > 0.95
+    assert on[wall].mean() < 0.02
+    assert off[fr > 0].mean() < 0.2 and off[fu > 0].mean() < 0.2
+    assert on[40:80, 40:80].all()  # the leaf, as before

@@ -48,7 +48,7 @@ from plantsplat.cube import CubeSpec, detect_markers
 from plantsplat.io import read_image
 from plantsplat.log import get_logger, progress
 from plantsplat.segment import geometry as geo
-from plantsplat.segment.colour import ColourModel, plant_colour_masks, stem_colour_mask
+from plantsplat.segment.colour import ColourModel, plant_colour_masks, stem_colour_mask, unripe_colour_mask
 
 log = get_logger(__name__)
 
@@ -99,9 +99,15 @@ class ClassicSettings:
     remove_pot: bool = True
     """Find a plant-coloured pot (a solid disc-sectioned block on the ground in the visual hull) and leave it out."""
     fruit_keep_fraction: float = 0.5
-    """Keep fraction of the second hull carved from strong red alone (fruit partly hidden by the pot)."""
+    """Keep fraction of the second hull carved from fruit colours alone (fruit partly hidden by the pot)."""
     fruit_reach: float = 0.3
-    """Red hull pieces within this fraction of the orbit radius of the orbit axis are fruit of the plant."""
+    """Fruit hull pieces within this fraction of the orbit radius of the orbit axis are fruit of the plant."""
+    fruit_inside: float = 0.6
+    """A piece of fruit colour is fruit when at least this fraction of it lies where the fruit hull projects."""
+    unripe_fruit_cm: float = 7.0
+    """Largest extent (cm) of a piece of the hull carved from unripe-fruit colour (pale yellow-green to cream,
+    :func:`~plantsplat.segment.colour.unripe_colour_mask`) that counts as fruit; larger pieces (a beige pot, wall or
+    box) do not; 0 = off."""
     cube_occlusion: bool = True
     """Compare each frame with the cube's printed faces as the camera should see them, and leave out of the cube what
     hides it (the pot, a leaf, a hand)."""
@@ -138,6 +144,7 @@ class CaptureContext:
     pose_source: list[str] = field(default_factory=list)
     roi_poses: list[np.ndarray | None] = field(default_factory=list)  # poses, gaps bridged loosely
     hull_points: np.ndarray | None = None  # [M, 3] plant voxel centres (cube frame, cm)
+    fruit_points: np.ndarray | None = None  # [F, 3] the fruit hull's points among them (cube frame, cm)
     pot: dict[str, Any] | None = None  # plant-coloured pot frustum (geometry.find_pot), left out of the masks
     voxel: float = 0.0
     centre: np.ndarray | None = None
@@ -255,6 +262,7 @@ class ClassicSegmenter:
         smalls: list[np.ndarray] = []
         small_rgb: list[np.ndarray] = []
         red_smalls: list[np.ndarray] = []
+        unripe_smalls: list[np.ndarray] = []
         grays: list[np.ndarray] = []
         size = None
 
@@ -265,15 +273,22 @@ class ClassicSegmenter:
             sw, sh, _ = _small_size(w, h, s.analysis_size)
             half = cv2.resize(rgb, (2 * sw, 2 * sh), interpolation=cv2.INTER_AREA)  # colours at twice the analysis size
             strong, _, _, red = plant_colour_masks(half, s.colour, with_red=True)
-            red_small = cv2.resize((strong & red).astype(np.uint8) * 255, (sw, sh), interpolation=cv2.INTER_AREA) >= 64
+            k3 = np.ones((3, 3), np.uint8)
+            red = cv2.morphologyEx(red.astype(np.uint8), cv2.MORPH_OPEN, k3)
+            red_small = cv2.resize(red * 255, (sw, sh), interpolation=cv2.INTER_AREA) >= 64
+            unripe_small = None
+            if s.unripe_fruit_cm > 0:
+                unripe = cv2.morphologyEx(unripe_colour_mask(half, s.colour).astype(np.uint8), cv2.MORPH_OPEN, k3)
+                unripe_small = cv2.resize(unripe * 255, (sw, sh), interpolation=cv2.INTER_AREA) >= 64
             small = cv2.resize(strong.astype(np.uint8) * 255, (sw, sh), interpolation=cv2.INTER_AREA) >= 48
             gray = None
             if s.feature_size:
                 fw, fh, _ = _small_size(w, h, s.feature_size)
                 gray = cv2.resize(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), (fw, fh), interpolation=cv2.INTER_AREA)
-            return p, (w, h), det, small, cv2.resize(half, (sw, sh), interpolation=cv2.INTER_AREA), red_small, gray
+            return (p, (w, h), det, small, cv2.resize(half, (sw, sh), interpolation=cv2.INTER_AREA), red_small,
+                    unripe_small, gray)
 
-        for p, wh, det, small, srgb, red_small, gray in progress(thread_map(one, image_paths),
+        for p, wh, det, small, srgb, red_small, unripe_small, gray in progress(thread_map(one, image_paths),
                                                                  "segment: markers and colours", total=len(image_paths)):
             if size is None:
                 size = wh
@@ -286,12 +301,14 @@ class ClassicSegmenter:
             smalls.append(small)
             small_rgb.append(srgb)
             red_smalls.append(red_small)
+            unripe_smalls.append(unripe_small)
             if gray is not None:
                 grays.append(gray)
         assert size is not None
         ctx = CaptureContext(size=size, detections=dets)
         ctx.info["frames_with_markers"] = int(sum(1 for d in dets if d))
         self._red_smalls = red_smalls
+        self._unripe_smalls = unripe_smalls
         if s.use_cube:
             self._geometry(ctx, smalls, grays)
         ctx.info["plant_locator"] = "3d" if ctx.hull_points is not None else "2d"
@@ -370,9 +387,10 @@ class ClassicSegmenter:
                                           s.hull_voxels, s.hull_keep_fraction)
         plant = geo.plant_component(occ, origin, vs, centre[:2], 0.12 * D, s.join_gap_cm)
         if s.fruit_keep_fraction < s.hull_keep_fraction:
-            # ripe fruit hang beside the pot, which hides them from part of the orbit: carved with a lower keep
-            # fraction from the strong red alone (a colour rooms rarely show near a plant), they join the plant
-            # when they hang within fruit_reach of the orbit axis, above the ground and below the plant's top
+            # fruit hang beside the pot, which hides them from part of the orbit: carved with a lower keep fraction
+            # from red alone (of any brightness: shaded fruit are too dark to seed the plant; a colour rooms rarely
+            # show near a plant), they join the plant when they hang within fruit_reach of the orbit axis, above the
+            # ground and below the plant's top
             red_masks = [cv2.dilate(m.astype(np.uint8), kernel).astype(bool) if ctx.poses[i] is not None else None
                          for i, m in enumerate(self._red_smalls)]
             rocc, _, _ = geo.visual_hull(red_masks, ctx.poses, Ks, centre, radius, (-0.05 * D, z_hi), s.hull_voxels,
@@ -383,6 +401,20 @@ class ClassicSegmenter:
             near = ((xs[:, None] - centre[0]) ** 2 + (ys[None, :] - centre[1]) ** 2 <= (s.fruit_reach * D) ** 2)
             top = zs[np.argwhere(plant)[:, 2]].max() if plant.any() else -np.inf
             fruit = rocc & near[:, :, None] & ((zs > -vs) & (zs <= top))[None, None, :] & ~plant
+            if s.unripe_fruit_cm > 0:
+                # unripe fruit: the same from pale yellow-green to cream, a colour rooms often show (beige walls,
+                # wood, boxes, pots), so only pieces no larger than a fruit count
+                umasks = [cv2.dilate(m.astype(np.uint8), kernel).astype(bool) if ctx.poses[i] is not None else None
+                          for i, m in enumerate(self._unripe_smalls)]
+                uocc, _, _ = geo.visual_hull(umasks, ctx.poses, Ks, centre, radius, (-0.05 * D, z_hi), s.hull_voxels,
+                                             s.fruit_keep_fraction)
+                uocc &= near[:, :, None] & ((zs > -vs) & (zs <= top))[None, None, :]
+                lab, n = ndimage.label(uocc, structure=np.ones((3, 3, 3)))
+                for sl, k in zip(ndimage.find_objects(lab), range(1, n + 1)):
+                    ext = max(x.stop - x.start for x in sl) * vs
+                    if ext <= s.unripe_fruit_cm:
+                        fruit[sl] |= lab[sl] == k
+                ctx.info["hull_voxels_unripe"] = int(uocc.sum())
             ctx.info["hull_voxels_fruit"] = int(fruit.sum())
             plant |= fruit
         else:
@@ -413,7 +445,8 @@ class ClassicSegmenter:
                 sub = (np.arange(int(round(vs / fvs))) + 0.5) * (vs / max(int(round(vs / fvs)), 1)) - vs / 2
                 offs = np.stack(np.meshgrid(sub, sub, sub, indexing="ij"), -1).reshape(-1, 3)
                 fr = origin + np.argwhere(fruit) * vs
-                fpts = np.concatenate([fpts, (fr[:, None, :] + offs[None]).reshape(-1, 3)])
+                ctx.fruit_points = (fr[:, None, :] + offs[None]).reshape(-1, 3)
+                fpts = np.concatenate([fpts, ctx.fruit_points])
             ctx.info["roi_voxel_cm"] = round(fvs, 3)
             pts, vs_roi = fpts, fvs
         if s.roi_voxels <= s.hull_voxels or len(pts) == 0:  # no finer carving, or it left nothing: the coarse volume
@@ -477,16 +510,22 @@ class ClassicSegmenter:
         ctx.info["background_colour_bins"] = int(self._bg_ring.sum())
         ctx.info["pot_colour_bins"] = int(self._bg_pot.sum())
 
-    def _roi_3d(self, i: int, ctx: CaptureContext) -> np.ndarray | None:
+    def _roi_3d(self, i: int, ctx: CaptureContext, points: np.ndarray | None = None,
+                margin_cm: float | None = None) -> np.ndarray | None:
+        """Frame ``i``'s plant region at the analysis size: the plant hull's points (or ``points``) projected and
+        dilated by a voxel plus ``margin_cm`` (default: the ROI margin, half as wide again for a borrowed pose)."""
         import cv2
 
-        if ctx.hull_points is None or not ctx.roi_poses or ctx.roi_poses[i] is None:
+        points = ctx.hull_points if points is None else points
+        if points is None or not ctx.roi_poses or ctx.roi_poses[i] is None:
             return None
         T = ctx.roi_poses[i]
         loose = ctx.poses[i] is None  # borrowed pose: a wider margin
         s = self.s
+        if margin_cm is None:
+            margin_cm = s.roi_margin_cm * (1.5 if loose else 1.0)
         h, w = self._smalls[i].shape
-        uv, z = geo.project(ctx.hull_points, T, self._Ks)
+        uv, z = geo.project(points, T, self._Ks)
         ok = z > 1e-3
         u = np.round(uv[ok, 0]).astype(np.int64)
         v = np.round(uv[ok, 1]).astype(np.int64)
@@ -494,7 +533,7 @@ class ClassicSegmenter:
         roi = np.zeros((h, w), np.uint8)
         roi[v[inside], u[inside]] = 1
         depth = float(np.median(z[ok])) if ok.any() else 1.0
-        r = (0.87 * ctx.voxel + s.roi_margin_cm * (1.5 if loose else 1.0)) * self._Ks[0, 0] / max(depth, 1e-3)
+        r = (0.87 * ctx.voxel + margin_cm) * self._Ks[0, 0] / max(depth, 1e-3)
         return cv2.dilate(roi, _disk(np.ceil(r))).astype(bool)
 
     def _pot_mask(self, i: int, ctx: CaptureContext, W: int, H: int) -> np.ndarray:
@@ -562,7 +601,8 @@ class ClassicSegmenter:
         plant, cube, info = self.mask_parts(i, rgb, ctx)
         return plant | cube, info
 
-    def _plant_in_box(self, rgb: np.ndarray, roi: np.ndarray, pot: np.ndarray | None, W: int, H: int) -> np.ndarray:
+    def _plant_in_box(self, rgb: np.ndarray, roi: np.ndarray, pot: np.ndarray | None, W: int, H: int,
+                      fruit: np.ndarray | None = None) -> np.ndarray:
         """Plant mask of one frame's crop ``rgb`` ``[Hb, Wb, 3]`` around its plant region ``roi`` (bool, same size);
         ``pot``: where the plant-coloured pot is seen in the crop, or None; ``W``, ``H``: the whole frame's size,
         which sets every size threshold."""
@@ -571,6 +611,16 @@ class ClassicSegmenter:
         s = self.s
         Hb, Wb = rgb.shape[:2]
         strong, weak, pale, red_only = plant_colour_masks(rgb, s.colour, with_red=True)
+        fruit_colour = None
+        if fruit is not None and fruit.any():
+            # where the fruit hull projects, fruit colours are fruit even when the room shows them too: pieces of
+            # fruit colour lying mostly there (a wall or box of that colour behind a fruit reaches far beyond it)
+            fc = (red_only | (unripe_colour_mask(rgb, s.colour) if s.unripe_fruit_cm > 0 else False)).astype(np.uint8)
+            n1, lab1, st1, _ = cv2.connectedComponentsWithStats(fc, connectivity=8)
+            inside = np.bincount(lab1[fruit], minlength=n1)
+            ok = inside >= s.fruit_inside * st1[:, cv2.CC_STAT_AREA]
+            ok[0] = False
+            fruit_colour = ok[lab1] & fruit
         if self._bg_learned:
             # background colours inside the plant region are left out where they form blobs (objects seen through
             # gaps, the pot); thin runs of them (petioles, peduncles, leaf edges against a similar wall) are kept
@@ -609,6 +659,8 @@ class ClassicSegmenter:
                 ok[0] = False
                 ok &= st2[:, cv2.CC_STAT_AREA] <= s.pale_max_area * H * W
                 plant |= ok[lab2]
+        if fruit_colour is not None:
+            plant |= fruit_colour
         if s.stem_px > 0 and self._bg_learned and plant.any():
             # thin runs attached to the plant: petioles and peduncles are olive to red-brown where they are not green,
             # and break the colour hysteresis above into pieces; what survives an opening of their width is a wide
@@ -660,10 +712,14 @@ class ClassicSegmenter:
         if box is not None:
             x0, y0, x1, y1 = box
             roi = cv2.resize(roi_small.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST)[y0:y1, x0:x1]
-            pot = None
+            pot = fruit = None
             if ctx.pot is not None and locator != "2d":
                 pot = self._pot_mask(i, ctx, W, H)[y0:y1, x0:x1]
-            plant[y0:y1, x0:x1] = self._plant_in_box(np.ascontiguousarray(rgb[y0:y1, x0:x1]), roi.astype(bool), pot, W, H)
+            if ctx.fruit_points is not None and len(ctx.fruit_points) and locator != "2d":
+                fr = self._roi_3d(i, ctx, ctx.fruit_points, 0.0)
+                fruit = cv2.resize(fr.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST)[y0:y1, x0:x1] > 0
+            plant[y0:y1, x0:x1] = self._plant_in_box(np.ascontiguousarray(rgb[y0:y1, x0:x1]), roi.astype(bool), pot, W, H,
+                                                     fruit)
         plant_fraction = float(plant.mean())
         cube = np.zeros((H, W), bool)
         pose = ctx.pose_source[i] if ctx.pose_source else "none"

@@ -59,6 +59,12 @@ class ColourModel:
     ExG - ExR test)..."""
     stem_sat: int = 100
     """...with at least this saturation (and ``min_value``): grey-brown dust and shadows are not stems."""
+    unripe_hue: tuple[int, int] = (18, 45)
+    """Unripe fruit (:func:`unripe_colour_mask`): pale yellow-green to cream, hue in this range..."""
+    unripe_sat: tuple[int, int] = (35, 150)
+    """...saturation in this range (paler than leaves, more coloured than white walls)..."""
+    unripe_value: int = 60
+    """...and at least this brightness."""
 
 
 def plant_colour_masks(
@@ -103,6 +109,26 @@ def plant_colour_masks(
     if with_red:
         return strong, weak, pale, red_weak & ~green_weak & ~green_strong
     return strong, weak, pale
+
+
+def unripe_colour_mask(rgb: np.ndarray, model: ColourModel = ColourModel()) -> np.ndarray:
+    """Pixels of an RGB uint8 image ``[H, W, 3]`` that could be unripe fruit: pale yellow-green to cream
+    (``model.unripe_*``), bool ``[H, W]``. Beige walls, wood and boxes share it: the segmenter uses it only where a
+    fruit-sized piece of the plant's volume shows this colour from most of the orbit.
+
+    Example:
+        >>> import numpy as np
+        >>> bool(unripe_colour_mask(np.full((1, 1, 3), (190, 196, 140), np.uint8))[0, 0])  # unripe strawberry
+        True
+        >>> bool(unripe_colour_mask(np.full((1, 1, 3), (40, 140, 40), np.uint8))[0, 0])  # leaf
+        False
+    """
+    import cv2
+
+    hsv = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2HSV)
+    h, s, v = hsv[..., 0], hsv[..., 1], hsv[..., 2]
+    return ((h >= model.unripe_hue[0]) & (h <= model.unripe_hue[1]) & (s >= model.unripe_sat[0])
+            & (s <= model.unripe_sat[1]) & (v >= model.unripe_value))
 
 
 def stem_colour_mask(rgb: np.ndarray, model: ColourModel = ColourModel()) -> np.ndarray:
