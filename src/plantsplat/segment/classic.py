@@ -22,8 +22,9 @@ Per capture (all frames at once):
    plant colours are taken with hysteresis (strong seeds grow into weak pixels; weak red only from
    strong red fruit, so dark red walls next to leaves are not grown into), small pale blobs
    touching the plant (flowers) are added, and so are thin runs of weak or stem colour (olive,
-   brown, red-brown petioles) touching it whose colour is not the room's; specks are removed and
-   pinholes filled. The cube is added
+   brown, red-brown petioles) touching it whose colour is not the room's; where the fruit hull (red of any
+   brightness, or fruit-sized pieces of unripe cream-green) projects, pieces of fruit colour lying mostly there are
+   added even when the room shows that colour; specks are removed and pinholes filled. The cube is added
    as its exact projected silhouette (all six faces, also where no marker is visible).
 
 Without a usable cube (no markers, or too few poses) step 2 falls back to 2D: the plant is the
