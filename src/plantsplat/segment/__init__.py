@@ -167,24 +167,22 @@ def segment_workspace(
     paths = [ws.images_dir / n for n in names]
     t0 = time.perf_counter()
     seg = ClassicSegmenter(settings)
-    ctx = seg.analyse(paths)
+    ctx = seg.analyse(paths, keep_bytes=_CACHE_BYTES)  # frames within the budget stay decoded until written
     t_analyse = time.perf_counter() - t0
     masks: list[np.ndarray] = []
     parts: list[tuple[np.ndarray, np.ndarray]] = []  # packed (plant, cube) for SAM-2 prompts
     per_frame: list[dict[str, Any]] = []
     shape = None
-    cache: dict[int, np.ndarray] = {}  # frames kept in memory (BGR) for writing the RGBA images, within a budget
 
     def one(i: int):
-        rgb = read_image(paths[i])
+        rgb = seg.frames.get(i)
+        if rgb is None:
+            rgb = read_image(paths[i])
         plant, cube, info = seg.mask_parts(i, rgb, ctx)
-        bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR) if rgb.nbytes * (i + 1) <= _CACHE_BYTES else None
-        return rgb.shape[:2], bgr, plant, cube, info
+        return rgb.shape[:2], plant, cube, info
 
-    for i, (shape, bgr, plant, cube, info) in enumerate(progress(thread_map(one, range(len(paths))),
-                                                                  "segment: classic masks", total=len(paths))):
-        if bgr is not None:
-            cache[i] = bgr
+    for i, (shape, plant, cube, info) in enumerate(progress(thread_map(one, range(len(paths))),
+                                                             "segment: classic masks", total=len(paths))):
         masks.append(np.packbits(plant | cube, axis=None))
         if backend == "sam2":
             parts.append((np.packbits(plant, axis=None), np.packbits(cube, axis=None)))
@@ -231,9 +229,8 @@ def segment_workspace(
         m = np.unpackbits(masks[i], count=H * W).reshape(H, W).astype(bool)
         m8 = m.astype(np.uint8) * 255
         _write_png(ws.masks_dir / names[i], m8)
-        bgr = cache.pop(i, None)
-        if bgr is None:
-            bgr = cv2.cvtColor(read_image(paths[i]), cv2.COLOR_RGB2BGR)
+        rgb = seg.frames.pop(i, None)
+        bgr = cv2.cvtColor(read_image(paths[i]) if rgb is None else rgb, cv2.COLOR_RGB2BGR)
         _write_png(ws.rgba_dir / names[i], cv2.merge([*cv2.split(bgr), m8]))  # BGRA [H, W, 4]
 
     for _ in progress(thread_map(write, range(len(paths))), "segment: writing masks and RGBA", total=len(paths)):

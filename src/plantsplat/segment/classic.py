@@ -254,8 +254,9 @@ class ClassicSegmenter:
         self.s = settings
 
     # ---------------------------------------------------------------- pass 1: the whole capture
-    def analyse(self, image_paths: list[Path]) -> CaptureContext:
-        """Read every frame once: markers, strong colour masks, cameras, the plant's visual hull."""
+    def analyse(self, image_paths: list[Path], keep_bytes: int = 0) -> CaptureContext:
+        """Read every frame once: markers, strong colour masks, cameras, the plant's visual hull. The first frames,
+        up to ``keep_bytes`` of them, stay decoded in :attr:`frames` (index -> RGB) for the per-frame pass."""
         import cv2
 
         s = self.s
@@ -266,6 +267,7 @@ class ClassicSegmenter:
         unripe_smalls: list[np.ndarray] = []
         grays: list[np.ndarray] = []
         size = None
+        self.frames: dict[int, np.ndarray] = {}
 
         def one(p: Path):
             rgb = read_image(p)
@@ -287,10 +289,10 @@ class ClassicSegmenter:
                 fw, fh, _ = _small_size(w, h, s.feature_size)
                 gray = cv2.resize(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), (fw, fh), interpolation=cv2.INTER_AREA)
             return (p, (w, h), det, small, cv2.resize(half, (sw, sh), interpolation=cv2.INTER_AREA), red_small,
-                    unripe_small, gray)
+                    unripe_small, gray, rgb)
 
-        for p, wh, det, small, srgb, red_small, unripe_small, gray in progress(thread_map(one, image_paths),
-                                                                 "segment: markers and colours", total=len(image_paths)):
+        for i, (p, wh, det, small, srgb, red_small, unripe_small, gray, rgb) in enumerate(progress(
+                thread_map(one, image_paths), "segment: markers and colours", total=len(image_paths))):
             if size is None:
                 size = wh
             elif wh != size:
@@ -298,6 +300,8 @@ class ClassicSegmenter:
 
                 raise PlantsplatError(f"{p}: size {wh[0]}x{wh[1]} differs from the other frames' {size[0]}x{size[1]}; "
                                       "re-run `plantsplat frames`")
+            if rgb.nbytes * (i + 1) <= keep_bytes:
+                self.frames[i] = rgb
             dets.append(det)
             smalls.append(small)
             small_rgb.append(srgb)

@@ -423,14 +423,16 @@ def visual_hull(
     vs = 2 * radius / voxels
     nz = max(2, int(np.ceil((z_range[1] - z_range[0]) / vs)))
     origin = np.array([centre[0] - radius, centre[1] - radius, z_range[0]]) + vs / 2
-    gi, gj, gk = np.meshgrid(np.arange(voxels), np.arange(voxels), np.arange(nz), indexing="ij")
-    idx = np.stack([gi.ravel(), gj.ravel(), gk.ravel()], 1)  # [V, 3]
-    pts = origin + idx * vs  # [V, 3]
+    # voxel centres [3, V], V in (x, y, z) C order, written axis by axis (no [V, 3] index and float64 copies)
+    xyz = np.empty((3, voxels, voxels, nz), np.float32)
+    xyz[0] = (origin[0] + np.arange(voxels) * vs).astype(np.float32)[:, None, None]
+    xyz[1] = (origin[1] + np.arange(voxels) * vs).astype(np.float32)[None, :, None]
+    xyz[2] = (origin[2] + np.arange(nz) * vs).astype(np.float32)[None, None, :]
+    xyz = xyz.reshape(3, -1)
     order = [i for i in range(len(masks)) if masks[i] is not None and poses[i] is not None]
     order = [order[i] for i in np.random.default_rng(0).permutation(len(order))]
-    xyz = pts.astype(np.float32).T.copy()  # [3, V]
-    seen = np.zeros(len(pts), np.int32)
-    hit = np.zeros(len(pts), np.int32)
+    seen = np.zeros(xyz.shape[1], np.int32)
+    hit = np.zeros(xyz.shape[1], np.int32)
     if order:
         P = np.stack([(K @ poses[fi][:3]).astype(np.float32) for fi in order])  # [F, 3, 4] projection matrices
         M = np.stack([np.asarray(masks[fi], dtype=bool) for fi in order]).view(np.uint8)  # [F, h, w]
