@@ -149,6 +149,14 @@ def test_orbit_poses_fill_gaps_and_reject_flips():
     bad[30] = flip @ views[30]
     assert geo.orbit_outliers(bad, centre) == [30]
     assert geo.orbit_outliers(list(views), centre) == []
+    # poses that leave the orbit (the camera came closer for a few frames) are dropped as flips from single
+    # markers would be, unless they are in keep (seen by two or more markers, which cannot flip); a flipped
+    # single-marker pose among kept ones is still found
+    close = list(views)
+    close[28:33] = _orbit_views(K, n=40, radius=40.0)[28:33]
+    close[10] = flip @ views[10]
+    assert set(geo.orbit_outliers(close, centre)) - {10}  # good poses on or next to the closer stretch dropped
+    assert geo.orbit_outliers(close, centre, keep=[j for j in range(len(close)) if j != 10]) == [10]
     # a flipped pose with no posed neighbour within the window (one marker seen, then the cube hidden behind
     # the pot for 8 frames) is checked against farther frames
     lone = list(views)

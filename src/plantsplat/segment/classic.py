@@ -362,7 +362,8 @@ class ClassicSegmenter:
             log.warning("segment: the camera does not circle a point; locating the plant in 2D")
             return
         # poses that disagree with the orbit through their neighbours (one-marker flips) are dropped
-        bad = geo.orbit_outliers(ctx.poses, centre)
+        multi = [j for j, (d, h) in enumerate(zip(ctx.detections, ctx.pose_source)) if h == "markers" and len(d) >= 2]
+        bad = geo.orbit_outliers(ctx.poses, centre, keep=multi)
         for j in bad:
             ctx.poses[j] = None
             ctx.pose_source[j] = "none"

@@ -16,6 +16,7 @@ Example:
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from typing import Any
 
 import numba
@@ -785,7 +786,7 @@ def pot_silhouette(pot: dict[str, Any], T_cam_world: np.ndarray, K: np.ndarray, 
 
 
 def orbit_outliers(poses: list[np.ndarray | None], centre: np.ndarray, factor: float = 4.0,
-                   min_cm: float = 3.0, min_deg: float = 6.0, window: int = 6) -> list[int]:
+                   min_cm: float = 3.0, min_deg: float = 6.0, window: int = 6, keep: Collection[int] = ()) -> list[int]:
     """Frames whose pose disagrees with the orbit through their neighbours (e.g. a flipped one-marker pose).
 
     Each posed frame is predicted from its nearest posed frame on either side or from the two nearest
@@ -793,8 +794,9 @@ def orbit_outliers(poses: list[np.ndarray | None], centre: np.ndarray, factor: f
     posed frame that near) with :func:`fill_orbit_poses`. The
     frame that differs most from its prediction, by more than ``factor`` times the median difference
     (and at least ``min_cm`` cm / ``min_deg`` degrees, both grown with the distance to the
-    neighbours), is dropped, and the search repeats (at most a fifth of the frames). Returns the
-    dropped indices.
+    neighbours), is dropped, and the search repeats (at most a fifth of the frames). Frames in ``keep``
+    (poses from two or more markers, which cannot flip) are never dropped: where the orbit is poorly
+    sampled, the prediction is the worse of the two. Returns the dropped indices.
 
     Example:
         >>> bad = orbit_outliers(poses, centre)   # e.g. [58]
@@ -844,6 +846,7 @@ def orbit_outliers(poses: list[np.ndarray | None], centre: np.ndarray, factor: f
         md, ma = np.median(r[:, 1]), np.median(r[:, 2])
         grow = 1.0 + (r[:, 3] - 1) / 2
         excess = np.maximum(r[:, 1] / (max(factor * md, min_cm) * grow), r[:, 2] / (max(factor * ma, min_deg) * grow))
+        excess[np.isin(r[:, 0].astype(np.int64), np.asarray(list(keep), np.int64))] = 0.0
         w = int(np.argmax(excess))
         if excess[w] <= 1.0:
             break
