@@ -4,9 +4,9 @@ Per capture (all frames at once):
 
 1. **Markers and cameras.** ArUco markers are detected in every frame; the intrinsics are estimated
    from the cube's known 3D marker corners (:func:`geometry.estimate_intrinsics`) and each frame's
-   camera pose in the cube frame is solved. Poses that disagree with the orbit through their
-   neighbours (flipped one-marker poses) are dropped, and every frame without a pose gets one on the
-   orbit (:func:`geometry.fill_orbit_poses`: angle, radius and height about the orbit's vertical axis
+   camera pose in the cube frame is solved. One-marker poses that disagree with the orbit through
+   their neighbours (flips) are dropped (poses from two or more markers are kept), and every frame
+   without a pose gets one on the orbit (:func:`geometry.fill_orbit_poses`: angle, radius and height about the orbit's vertical axis
    interpolated between the nearest posed frames in video order, orientation by slerp; the ends
    extrapolated). So the cube is drawn, and the plant located in 3D, in every frame.
 2. **Where the plant is.** The camera circles the plant, so the point closest to every optical axis
