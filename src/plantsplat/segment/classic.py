@@ -383,38 +383,36 @@ class ClassicSegmenter:
         Ks[:2] *= sc
         Ks[0, 2] = (ctx.K[0, 2] + 0.5) * sc - 0.5
         Ks[1, 2] = (ctx.K[1, 2] + 0.5) * sc - 0.5
-        vs = 2 * radius / s.hull_voxels
-        r_px = 0.87 * vs * Ks[0, 0] / depth
-        kernel = _disk(np.ceil(r_px))
-        carve_masks = [cv2.dilate(m.astype(np.uint8), kernel).astype(bool) if ctx.poses[i] is not None else None
-                       for i, m in enumerate(smalls)]
+
+        def carve(masks: list[np.ndarray], voxels: int, keep: float):
+            """Visual hull around the orbit centre, ``voxels`` a side, of the posed frames' ``masks`` (analysis size),
+            each dilated by a voxel's reach: :func:`geometry.visual_hull`'s ``(occupied, origin, voxel size)``."""
+            kernel = _disk(np.ceil(0.87 * (2 * radius / voxels) * Ks[0, 0] / depth))
+            grown = [cv2.dilate(m.astype(np.uint8), kernel).astype(bool) if ctx.poses[j] is not None else None
+                     for j, m in enumerate(masks)]
+            return geo.visual_hull(grown, ctx.poses, Ks, centre, radius, (-0.05 * D, z_hi), voxels, keep)
+
         log.info("segment: carving the plant's visual hull from %d views", n_pose)
-        occ, origin, vs = geo.visual_hull(carve_masks, ctx.poses, Ks, centre, radius, (-0.05 * D, z_hi),
-                                          s.hull_voxels, s.hull_keep_fraction)
+        occ, origin, vs = carve(smalls, s.hull_voxels, s.hull_keep_fraction)
         plant = geo.plant_component(occ, origin, vs, centre[:2], 0.12 * D, s.join_gap_cm)
         if s.fruit_keep_fraction < s.hull_keep_fraction:
             # fruit hang beside the pot, which hides them from part of the orbit: carved with a lower keep fraction
             # from red alone (of any brightness: shaded fruit are too dark to seed the plant; a colour rooms rarely
             # show near a plant), they join the plant when they hang within fruit_reach of the orbit axis, above the
             # ground and below the plant's top
-            red_masks = [cv2.dilate(m.astype(np.uint8), kernel).astype(bool) if ctx.poses[i] is not None else None
-                         for i, m in enumerate(self._red_smalls)]
-            rocc, _, _ = geo.visual_hull(red_masks, ctx.poses, Ks, centre, radius, (-0.05 * D, z_hi), s.hull_voxels,
-                                         s.fruit_keep_fraction)
+            rocc, _, _ = carve(self._red_smalls, s.hull_voxels, s.fruit_keep_fraction)
             xs = origin[0] + np.arange(rocc.shape[0]) * vs
             ys = origin[1] + np.arange(rocc.shape[1]) * vs
             zs = origin[2] + np.arange(rocc.shape[2]) * vs
             near = ((xs[:, None] - centre[0]) ** 2 + (ys[None, :] - centre[1]) ** 2 <= (s.fruit_reach * D) ** 2)
             top = zs[np.argwhere(plant)[:, 2]].max() if plant.any() else -np.inf
-            fruit = rocc & near[:, :, None] & ((zs > -vs) & (zs <= top))[None, None, :] & ~plant
+            hanging = near[:, :, None] & ((zs > -vs) & (zs <= top))[None, None, :]  # where fruit of the plant hang
+            fruit = rocc & hanging & ~plant
             if s.unripe_fruit_cm > 0:
                 # unripe fruit: the same from pale yellow-green to cream, a colour rooms often show (beige walls,
                 # wood, boxes, pots), so only pieces no larger than a fruit count
-                umasks = [cv2.dilate(m.astype(np.uint8), kernel).astype(bool) if ctx.poses[i] is not None else None
-                          for i, m in enumerate(self._unripe_smalls)]
-                uocc, _, _ = geo.visual_hull(umasks, ctx.poses, Ks, centre, radius, (-0.05 * D, z_hi), s.hull_voxels,
-                                             s.fruit_keep_fraction)
-                uocc &= near[:, :, None] & ((zs > -vs) & (zs <= top))[None, None, :]
+                uocc, _, _ = carve(self._unripe_smalls, s.hull_voxels, s.fruit_keep_fraction)
+                uocc &= hanging
                 lab, n = ndimage.label(uocc, structure=np.ones((3, 3, 3)))
                 for sl, k in zip(ndimage.find_objects(lab), range(1, n + 1)):
                     ext = max(x.stop - x.start for x in sl) * vs
@@ -436,11 +434,7 @@ class ClassicSegmenter:
         if s.roi_voxels > s.hull_voxels:
             # the plant region is carved again on a finer grid (within the coarse plant and its fruit), so
             # that gaps between leaves, where the room shows through, leave the region
-            kernel_f = _disk(np.ceil(0.87 * (2 * radius / s.roi_voxels) * Ks[0, 0] / depth))
-            fine_masks = [cv2.dilate(m.astype(np.uint8), kernel_f).astype(bool) if ctx.poses[i] is not None else None
-                          for i, m in enumerate(smalls)]
-            focc, forigin, fvs = geo.visual_hull(fine_masks, ctx.poses, Ks, centre, radius, (-0.05 * D, z_hi),
-                                                 s.roi_voxels, s.hull_keep_fraction)
+            focc, forigin, fvs = carve(smalls, s.roi_voxels, s.hull_keep_fraction)
             fidx = np.argwhere(focc)
             fpts = forigin + fidx * fvs
             cidx = np.clip(np.round((fpts - origin) / vs).astype(np.int64), 0, np.array(plant.shape) - 1)
