@@ -168,7 +168,7 @@ def generate(cfg: SynthConfig) -> dict:
                         shadow_radius=scene["platform"]["radius_cm"] + 100.0,
                         shadow_size=4096 if max(cfg.width, cfg.height) > 720 else 2048,
                         object_classes=FOREGROUND_CLASSES if cfg.object_renders else ())
-    ideal = SensorModel.draw(np.random.default_rng(0), cfg.frames, clean=True)  # develops objects/
+    ideal = SensorModel.draw(np.random.default_rng(0), cfg.frames, clean=True) if cfg.object_renders else None
     timings["gl_setup_s"] = time.perf_counter() - t
     log.info("rendering %d frames at %dx%d (%s)", cfg.frames, cfg.width, cfg.height, renderer.ctx.info["GL_RENDERER"])
     axis_pt = np.array([[0.0, 0.0, pot.soil_z]])
@@ -190,7 +190,8 @@ def generate(cfg: SynthConfig) -> dict:
             t1 = time.perf_counter()
             if i == 0:
                 sensor.calibrate(linear)
-                ideal.base_gain = sensor.base_gain
+                if ideal is not None:  # objects/ are developed at the frames' base gain
+                    ideal.base_gain = sensor.base_gain
             j0, j1 = max(i - 1, 0), min(i + 1, cfg.frames - 1)
             motion = axis_uv[j1] - axis_uv[j0]
             rgb = sensor.develop(linear, i, np.random.default_rng([s_noise.entropy, i]),
@@ -202,7 +203,7 @@ def generate(cfg: SynthConfig) -> dict:
             name = IMAGE_PATTERN.format(i)
             pending.append(pool.submit(write_image_atomic, out / "frames" / name, rgb))
             pending.append(pool.submit(write_image_atomic, out / "masks" / name, mask))
-            if cfg.object_renders:
+            if ideal is not None:
                 obj = ideal.develop(renderer.render_objects(c2ws[i]), i, np.random.default_rng(0))
                 pending.append(pool.submit(write_image_atomic, out / "objects" / name, obj))
             vw.write(rgb)
