@@ -232,3 +232,80 @@ def test_import_transforms_keeps_poses_and_writes_outputs(tmp_path, capsys):
     mtime = (ws / "poses.json").stat().st_mtime_ns
     assert main(["poses", str(ws), "--import-transforms", str(tmp_path / "user_transforms.json")]) == 0
     assert (ws / "poses.json").stat().st_mtime_ns == mtime
+
+
+@pytest.mark.parametrize("video", [True, False])
+def test_wrongly_posed_frames_are_found_on_and_off_the_cube(video):
+    """A frame turned off the orbit is found from its neighbours, with markers or without; a good orbit keeps all.
+
+    Video: frames kept 1 or 2 source frames apart, the camera rising steadily. Photos: two rings, the
+    second a step above the first.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from plantsplat.poses.estimate import wrongly_posed
+
+    rng = np.random.default_rng(3)
+    cube = CubeSpec()
+    steps = np.cumsum([0] + [1 + (i % 2) for i in range(47)]) if video else np.arange(48)
+    gt = {}
+    for i, x in enumerate(steps):
+        a = 2 * np.pi * x / steps[24]  # 15 degrees a frame
+        h = 12.0 + 23.0 * x / steps[-1] if video else (12.0 if i < 24 else 35.0)
+        gt[f"frame_{i:05d}.png"] = look_at(np.array([15 + 45 * np.cos(a), 45 * np.sin(a), h]), np.array([15.0, 0, 8.0]))
+    names = sorted(gt)
+    positions = list(steps) if video else None
+    det = detections_for(gt, cube, rng)
+    rec = make_rec(gt)
+    cal = calibrate(rec, det, cube)
+    assert wrongly_posed(rec, cal, det, names, 3.0, positions) == []
+
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler("z", 35, degrees=True).as_matrix()
+    blind, seen = names[10], names[33]
+    det.pop(blind)  # no marker seen (the pot hides the cube): only the camera's path can tell
+    bad = dict(gt)
+    for n in (blind, seen):
+        bad[n] = turn @ gt[n]
+    rec = make_rec(bad)
+    cal = calibrate(rec, det, cube)
+    assert cal.consistent  # one frame of many: the model as a whole still passes the cube check
+    assert wrongly_posed(rec, cal, det, names, 3.0, positions) == sorted([blind, seen])
+
+
+def test_model_warped_as_a_whole_is_adjusted_onto_the_cube():
+    """A merged model whose second half drifted fails the cube check; adjusting it onto the cube's corners
+    brings its cameras back; a frame posed the wrong way (all its markers far off) does not pull them."""
+    from scipy.spatial.transform import Rotation
+
+    from plantsplat.poses.estimate import PosesConfig, _adjust_onto_cube
+
+    rng = np.random.default_rng(4)
+    cube = CubeSpec()
+    gt = orbit(n=48)
+    names = sorted(gt)
+    det = detections_for(gt, cube, rng)
+    warped = {}
+    for i, n in enumerate(names):
+        M = gt[n].copy()
+        if i >= 24:  # the second fragment: 5 % too far from the cube
+            M[:3, 3] = 1.05 * M[:3, 3]
+        warped[n] = M
+    wrong = names[30]
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler("z", 35, degrees=True).as_matrix()
+    warped[wrong] = turn @ gt[wrong]
+    rec = make_rec(warped, random_sim(rng))
+    cal = calibrate(rec, det, cube)
+    assert not cal.consistent
+    out = _adjust_onto_cube(rec, cal, det, cube, PosesConfig())
+    assert out is not None
+    trial, drop = out
+    assert drop <= {wrong}
+    fixed = calibrate(trial, {n: d for n, d in det.items() if n not in drop}, cube)
+    assert fixed.consistent and fixed.median_residual_px < 1.0
+    assert {n for n, _, r in fixed.detections_rejected if r > 6.0} <= {wrong}
+    err = compare_poses({n: M for n, M in model_c2w(trial).items() if n != wrong}, gt)
+    assert err["centre_error"]["max"] < 0.5 and err["scale_error_pct"] < 0.5, err
+    # a model that passes needs nothing
+    assert _adjust_onto_cube(make_rec(gt), calibrate(make_rec(gt), det, cube), det, cube, PosesConfig()) is None

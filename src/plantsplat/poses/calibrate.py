@@ -267,18 +267,21 @@ def up_vector(cal: Calibration | None) -> np.ndarray | None:
     return cal.R.T @ np.array([0.0, 0.0, 1.0])
 
 
-def refine_with_cube(rec, detections: dict, cal: Calibration, cube: CubeSpec = CubeSpec(), num_threads: int = 2) -> int:
+def refine_with_cube(rec, detections: dict, cal: Calibration, cube: CubeSpec = CubeSpec(), num_threads: int = 2,
+                     within_px: float | None = None) -> int:
     """Bundle adjustment of a model already in the cube frame, with the marker corners as control points.
 
     Every marker corner seen in two or more frames (detections kept by :func:`calibrate`) is added
     to ``rec`` as a 3D point held constant at its known position on the cube (cm), observed at its
     detected sub-pixel corners; cameras, intrinsics and the other points are refined together. The
     cube's metric geometry then constrains the focal length and scale along with the SfM tracks.
+    ``within_px``: detections that :func:`calibrate` rejected but that lie within this many pixels
+    are used too (for a model warped as a whole, whose residuals exceed the detections' own error).
     Returns the number of control points added (0: nothing done).
     """
     import pycolmap
 
-    rejected = {(n, m) for n, m, _ in cal.detections_rejected}
+    rejected = {(n, m) for n, m, r in cal.detections_rejected if within_px is None or r > within_px}
     by_name = {im.name: im for im in rec.images.values() if im.has_pose}
     tracks: dict[tuple[int, int], list] = {}
     for name, det in detections.items():

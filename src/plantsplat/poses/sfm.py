@@ -307,10 +307,12 @@ def global_sfm(db: Path, image_dir: Path, out_dir: Path, opts: SfmOptions) -> li
     return sorted(models.values(), key=lambda r: -r.num_reg_images())
 
 
-def refine(rec, db: Path, image_dir: Path, work_dir: Path, opts: SfmOptions, retriangulate: bool = True):
+def refine(rec, db: Path, image_dir: Path, work_dir: Path, opts: SfmOptions, retriangulate: bool = True,
+           adjust: bool = True):
     """Re-triangulate all matches with the current poses, then a full bundle adjustment.
 
-    Returns the refined reconstruction (a new object when re-triangulated).
+    With ``adjust=False`` the poses and intrinsics are kept as they are: only the points are
+    triangulated (and refined). Returns the refined reconstruction (a new object when re-triangulated).
     """
     import pycolmap
 
@@ -323,7 +325,9 @@ def refine(rec, db: Path, image_dir: Path, work_dir: Path, opts: SfmOptions, ret
             o = pycolmap.IncrementalPipelineOptions()
             o.num_threads = opts.num_threads
             o.random_seed = opts.seed
-            rec = pycolmap.triangulate_points(rec, db, image_dir, out, clear_points=True, options=o, refine_intrinsics=True)
+            rec = pycolmap.triangulate_points(rec, db, image_dir, out, clear_points=True, options=o, refine_intrinsics=adjust)
+        if not adjust:
+            return rec
         ba = pycolmap.BundleAdjustmentOptions()
         ba.refine_focal_length = True
         ba.refine_extra_params = True

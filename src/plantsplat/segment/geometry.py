@@ -786,7 +786,8 @@ def pot_silhouette(pot: dict[str, Any], T_cam_world: np.ndarray, K: np.ndarray, 
 
 
 def orbit_outliers(poses: list[np.ndarray | None], centre: np.ndarray, factor: float = 4.0,
-                   min_cm: float = 3.0, min_deg: float = 6.0, window: int = 6, keep: Collection[int] = ()) -> list[int]:
+                   min_cm: float = 3.0, min_deg: float = 6.0, window: int = 6, keep: Collection[int] = (),
+                   any_side: bool = False) -> list[int]:
     """Frames whose pose disagrees with the orbit through their neighbours (e.g. a flipped one-marker pose).
 
     Each posed frame is predicted from its nearest posed frame on either side or from the two nearest
@@ -796,7 +797,10 @@ def orbit_outliers(poses: list[np.ndarray | None], centre: np.ndarray, factor: f
     (and at least ``min_cm`` cm / ``min_deg`` degrees, both grown with the distance to the
     neighbours), is dropped, and the search repeats (at most a fifth of the frames). Frames in ``keep``
     (poses from two or more markers, which cannot flip) are never dropped: where the orbit is poorly
-    sampled, the prediction is the worse of the two. Returns the dropped indices.
+    sampled, the prediction is the worse of the two. With ``any_side`` every pair is tried and the one
+    that agrees best counts: the first frame of a new ring, a step up from the last, is then predicted
+    from the frames after it (for cameras that are all trusted alike, such as an SfM model's). Returns
+    the dropped indices.
 
     Example:
         >>> bad = orbit_outliers(poses, centre)   # e.g. [58]
@@ -823,23 +827,31 @@ def orbit_outliers(poses: list[np.ndarray | None], centre: np.ndarray, factor: f
                     break
             if not pairs:
                 continue
-            a, b = min(pairs, key=lambda ab: max(abs(i - ab[0]), abs(i - ab[1])))  # the closest neighbours
-            if (i, a, b) not in cache:
-                lo, hi = min(a, b, i), max(a, b, i)
-                sub: list[np.ndarray | None] = [None] * (hi - lo + 1)
-                sub[a - lo], sub[b - lo] = poses[a], poses[b]
-                pred = fill_orbit_poses(sub, centre, max_extrapolate=hi - lo)[0][i - lo]
-                if pred is None:
-                    cache[(i, a, b)] = None
-                else:
-                    ci, cp = np.linalg.inv(poses[i]), np.linalg.inv(pred)
-                    cache[(i, a, b)] = (float(np.linalg.norm(ci[:3, 3] - cp[:3, 3])),
-                                        float(np.degrees(Rotation.from_matrix(ci[:3, :3].T @ cp[:3, :3]).magnitude())))
-            if cache[(i, a, b)] is None:
-                continue
-            d, ang = cache[(i, a, b)]
-            gap = max(abs(i - a), abs(i - b))
-            rows.append((i, d, ang, gap))
+            if not any_side:  # the closest neighbours
+                pairs = [min(pairs, key=lambda ab: max(abs(i - ab[0]), abs(i - ab[1])))]
+            best = None
+            for a, b in pairs:
+                if (i, a, b) not in cache:
+                    lo, hi = min(a, b, i), max(a, b, i)
+                    sub: list[np.ndarray | None] = [None] * (hi - lo + 1)
+                    sub[a - lo], sub[b - lo] = poses[a], poses[b]
+                    pred = fill_orbit_poses(sub, centre, max_extrapolate=hi - lo)[0][i - lo]
+                    if pred is None:
+                        cache[(i, a, b)] = None
+                    else:
+                        ci, cp = np.linalg.inv(poses[i]), np.linalg.inv(pred)
+                        cache[(i, a, b)] = (float(np.linalg.norm(ci[:3, 3] - cp[:3, 3])),
+                                            float(np.degrees(Rotation.from_matrix(ci[:3, :3].T @ cp[:3, :3]).magnitude())))
+                if cache[(i, a, b)] is None:
+                    continue
+                d, ang = cache[(i, a, b)]
+                gap = max(abs(i - a), abs(i - b))
+                grown = 1.0 + (gap - 1) / 2
+                off = max(d / (min_cm * grown), ang / (min_deg * grown))
+                if best is None or off < best[0]:
+                    best = (off, (i, d, ang, gap))
+            if best is not None:
+                rows.append(best[1])
         if len(rows) < 5:
             break
         r = np.array(rows)
