@@ -362,7 +362,12 @@ def _run_sfm(ws: Workspace, names: list[str], cfg: PosesConfig, detections: dict
     events = report["events"]
 
     def cube_checked(m, c, what: str):
-        """``(m, c)``, or ``m`` adjusted onto the cube when that makes a model failing the check pass."""
+        """``(m, c)``, or ``m`` adjusted onto the cube when that makes a model failing the check pass.
+
+        Only a model with more frames than the current one is worth it: only such a model can replace it.
+        """
+        if m.num_reg_images() <= rec.num_reg_images():
+            return m, c
         fixed = _cube_adjusted(m, c, detections, cube, cfg, db, ws.images_dir, work / "cube_adjusted")
         if fixed is None:
             return m, c
