@@ -12,8 +12,15 @@ background ``B``:
   mix the object with the room behind it, which no object model renders, and they carry much of the
   foreground's error (on seed 0 of the training benchmark an exact render of the plant and cube alone scores
   about 6 dB less there than inside).
-- ``pbr`` (full mode with masks, the paper's post-background-removal baseline): the full model's
-  render with the mask applied after training, against the frame composited over ``B``.
+- ``pbr`` (full mode with masks, the post-background-removal baseline): the full model's render
+  with the test frame's own mask applied after training, against the frame composited over ``B``.
+  The mask is the frame's, so the render is clipped exactly where the target is: an upper bound.
+- ``pbr_segmented`` (full mode with masks): the paper's PBR as the paper ran it. The paper removes
+  the background from the *renders* with SAM-2; here the renders of the test views are segmented
+  by the segmenter that made the workspace's masks (classic, or SAM-2 with the checkpoint recorded
+  in ``segment.json``), each render is clipped by its own mask and scored against the frame
+  composited over ``B`` as above. ``mask_iou`` compares those masks with the test frames' masks.
+  None, with ``pbr_segmented_error``, where the renders cannot be segmented (no cube in them).
 
 Example:
     >>> m = evaluate_workspace(Workspace("ws/plant_01"))  # doctest: +SKIP
@@ -78,6 +85,7 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
     bg = torch.zeros(3)
     occ = _occluders_from(extra.get("occluders"), device) if object_mode else None  # drawn in bg, as in training
     per_view = []
+    pbr_renders: dict[str, np.ndarray] = {}  # full mode: test renders (uint8) for the segmented PBR
     render_seconds = 0.0
     n_px = 0
     # a few test views, evenly spaced, are saved next to their ground truth for the report
@@ -118,13 +126,27 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
                 if not object_mode:
                     row["pbr"] = {"psnr": float(psnr(pred_m, gt_fg)), "ssim": float(ssim(pred_m, gt_fg)),
                                   "lpips": lpips(net, pred_m, gt_fg)}
+                    pbr_renders[name] = _to_u8(pred)
             per_view.append(row)
+    pbr_segmented_error = None
+    if pbr_renders:
+        seg_masks, pbr_segmented_error = segment_renders(ws, pbr_renders)
+        for row in per_view if seg_masks else ():
+            img, alpha = (t.cpu() for t in cache.get(row["name"], 1)[:2])
+            gt_fg = img * alpha + (1 - alpha) * bg
+            m = torch.from_numpy(seg_masks[row["name"]]).float()[..., None]  # [h, w, 1] in {0, 1}
+            pred = torch.from_numpy(pbr_renders[row["name"]]).float() / 255.0
+            pred_m = pred * m + (1 - m) * bg
+            a, b = alpha > 0.5, m > 0.5
+            row["pbr_segmented"] = {"psnr": float(psnr(pred_m, gt_fg)), "ssim": float(ssim(pred_m, gt_fg)),
+                                    "lpips": lpips(net, pred_m, gt_fg),
+                                    "mask_iou": float((a & b).sum() / max(1, int((a | b).sum())))}
 
     def agg(kind):
         rows = [r[kind] for r in per_view if kind in r]
         if not rows:
             return None
-        return {k: _mean([r.get(k) for r in rows]) for k in ("psnr", "ssim", "lpips", "psnr_interior")
+        return {k: _mean([r.get(k) for r in rows]) for k in ("psnr", "ssim", "lpips", "psnr_interior", "mask_iou")
                 if any(k in r for r in rows)}
 
     summary = dict(train_summary or {})
@@ -139,6 +161,8 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
         "composite": agg("composite"),
         "foreground": agg("foreground"),
         "pbr": agg("pbr"),
+        "pbr_segmented": agg("pbr_segmented"),
+        "pbr_segmented_error": pbr_segmented_error,
         "lpips_weights": None if net is None else "loaded",
         "n_gaussians": int(params["means"].shape[0]),
         "render_fps": len(names) / render_seconds if render_seconds > 0 else None,
@@ -159,7 +183,43 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
     log.info("test views: PSNR %.2f SSIM %.4f LPIPS %s | foreground PSNR %s SSIM %s | %.2f FPS -> %s",
              c["psnr"], c["ssim"], _fmt(c["lpips"]), _fmt(f.get("psnr")), _fmt(f.get("ssim")),
              metrics["render_fps"] or 0, metrics_path)
+    for key, label in (("pbr", "test frames' masks"), ("pbr_segmented", "renders segmented")):
+        if metrics[key]:
+            log.info("PBR (%s): PSNR %.2f SSIM %.4f LPIPS %s", label, metrics[key]["psnr"], metrics[key]["ssim"],
+                     _fmt(metrics[key]["lpips"]))
     return metrics
+
+
+def segment_renders(ws: Workspace, renders: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray] | None, str | None]:
+    """Segment a full model's renders ``{name: [h, w, 3] uint8 RGB}`` as the workspace's frames were segmented
+    (``segment.json``'s backend; classic when there is none or its SAM-2 checkpoint is gone), in a temporary
+    workspace. Returns ``({name: [h, w] bool mask}, None)``, or ``(None, reason)`` when the segmenter finds
+    nothing to cut out (e.g. no cube in the renders)."""
+    import tempfile
+
+    from plantsplat.io import read_image, read_json
+    from plantsplat.segment import segment_workspace
+
+    backend, kwargs = "classic", {}
+    if ws.segment_json.is_file():
+        info = read_json(ws.segment_json)
+        ckpt = ((info.get("settings") or {}).get("sam2") or {}).get("checkpoint")
+        if info.get("backend") == "sam2" and ckpt and Path(ckpt).is_file():
+            backend = "sam2"
+            kwargs = {"sam2_checkpoint": ckpt, "sam2_config": info["settings"]["sam2"].get("config")}
+    with tempfile.TemporaryDirectory(prefix="plantsplat_pbr_") as tmp:
+        rws = Workspace(tmp)
+        rws.images_dir.mkdir(parents=True)
+        for name, rgb in renders.items():
+            write_image_atomic(rws.images_dir / name, rgb)
+        log.info("PBR: segmenting %d test renders of the full model (%s), as the paper removes the background "
+                 "after training", len(renders), backend)
+        try:
+            segment_workspace(rws, backend=backend, preview=False, max_excluded=1.0, **kwargs)
+        except PlantsplatError as e:
+            log.warning("PBR: the renders could not be segmented (%s); pbr_segmented is left out", e)
+            return None, str(e)
+        return {name: read_image(rws.masks_dir / name, "gray") > 127 for name in renders}, None
 
 
 def foreground_scores(pred: torch.Tensor, gt_fg: torch.Tensor, alpha: torch.Tensor) -> dict:
