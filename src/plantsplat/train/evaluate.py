@@ -19,8 +19,9 @@ background ``B``:
   the background from the *renders* with SAM-2; here the renders of the test views are segmented
   by the segmenter that made the workspace's masks (classic, or SAM-2 with the checkpoint recorded
   in ``segment.json``), each render is clipped by its own mask and scored against the frame
-  composited over ``B`` as above. ``mask_iou`` compares those masks with the test frames' masks.
-  None, with ``pbr_segmented_error``, where the renders cannot be segmented (no cube in them).
+  composited over ``B`` as above (the render as the 8-bit image the segmenter sees). ``mask_iou``
+  compares those masks with the test frames' masks. A render in which the segmenter finds nothing is
+  scored as all background; None, with ``pbr_segmented_error``, where the segmenter fails outright.
 
 Example:
     >>> m = evaluate_workspace(Workspace("ws/plant_01"))  # doctest: +SKIP
@@ -193,8 +194,8 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
 def segment_renders(ws: Workspace, renders: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray] | None, str | None]:
     """Segment a full model's renders ``{name: [h, w, 3] uint8 RGB}`` as the workspace's frames were segmented
     (``segment.json``'s backend; classic when there is none or its SAM-2 checkpoint is gone), in a temporary
-    workspace. Returns ``({name: [h, w] bool mask}, None)``, or ``(None, reason)`` when the segmenter finds
-    nothing to cut out (e.g. no cube in the renders)."""
+    workspace. Returns ``({name: [h, w] bool mask}, None)`` (an empty mask where it finds no plant), or
+    ``(None, reason)`` when the segmenter fails outright."""
     import tempfile
 
     from plantsplat.io import read_image, read_json
