@@ -27,7 +27,7 @@ import numpy as np
 from plantsplat.frames import extract_frames
 from plantsplat.io import write_json_atomic
 from plantsplat.resources import machine_info
-from plantsplat.segment import segment_workspace
+from plantsplat.segment import mask_iou, segment_workspace
 from plantsplat.workspace import Workspace
 
 RESULTS = Path(__file__).resolve().parent / "results" / "segment.json"
@@ -82,7 +82,7 @@ def score_capture(cap: Path, ws: Workspace, frames_info: dict) -> dict:
     for f in frames_info["frames"]:
         gt = cv2.imread(str(cap / "masks" / f["source_name"]), cv2.IMREAD_GRAYSCALE) > 127
         m = cv2.imread(str(ws.masks_dir / f["name"]), cv2.IMREAD_GRAYSCALE) > 127
-        ious.append(float((gt & m).sum() / max((gt | m).sum(), 1)))
+        ious.append(mask_iou(gt, m))
         bfs.append(boundary_f(m, gt))
     ious = np.array(ious)
     return {"mean_iou": round(float(ious.mean()), 4), "worst_iou": round(float(ious.min()), 4),

@@ -152,7 +152,7 @@ def object_on_segmented_masks(ws: Workspace, iterations: int | None, max_res: in
     ground-truth masks (as the other rows). Also the segmenter's mask IoU against the truth over all frames."""
     import cv2
 
-    from plantsplat.segment import segment_workspace
+    from plantsplat.segment import mask_iou, segment_workspace
     from plantsplat.train.evaluate import evaluate_workspace
     from plantsplat.train.trainer import TrainConfig, train_workspace
 
@@ -166,7 +166,7 @@ def object_on_segmented_masks(ws: Workspace, iterations: int | None, max_res: in
     for name in ws.image_names():
         t = cv2.imread(str(ws.masks_dir / name), cv2.IMREAD_GRAYSCALE) > 127
         m = cv2.imread(str(seg.masks_dir / name), cv2.IMREAD_GRAYSCALE) > 127
-        ious.append(float((t & m).sum() / max(1, (t | m).sum())))
+        ious.append(mask_iou(t, m))
     t0 = time.perf_counter()
     cfg = TrainConfig(mode="object", iterations=iterations, max_resolution=max_res, train_dir=seg.root / "train_object",
                       evaluate=False)

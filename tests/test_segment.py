@@ -13,15 +13,12 @@ import pytest
 from plantsplat.cube import CubeSpec
 from plantsplat.errors import PlantsplatError
 from plantsplat.frames import extract_frames
+from plantsplat.segment import mask_iou as iou
 from plantsplat.segment import segment_workspace
 from plantsplat.segment import geometry as geo
 from plantsplat.segment.classic import ClassicSettings
 from plantsplat.segment.colour import plant_colour_masks
 from plantsplat.workspace import Workspace
-
-
-def iou(a: np.ndarray, b: np.ndarray) -> float:
-    return float((a & b).sum() / max((a | b).sum(), 1))
 
 
 # ------------------------------------------------------------------ colour model

@@ -137,6 +137,7 @@ def test_segmented_pbr_cuts_renders_as_the_frames_are_cut(synth_capture, tmp_pat
     import cv2
 
     from plantsplat.io import read_image
+    from plantsplat.segment import mask_iou
     from plantsplat.train.evaluate import segment_renders
 
     cap = synth_capture(seed=1, frames=36, width=270, height=480)
@@ -151,7 +152,7 @@ def test_segmented_pbr_cuts_renders_as_the_frames_are_cut(synth_capture, tmp_pat
         m = masks[Path(fr["file"]).name]
         t = cv2.imread(str(cap / fr["mask"]), cv2.IMREAD_GRAYSCALE) > 127
         assert m.dtype == bool and m.shape == t.shape
-        ious.append((m & t).sum() / max(1, (m | t).sum()))
+        ious.append(mask_iou(m, t))
     assert np.mean(ious) > 0.75, np.round(ious, 2)
     assert not any(ws.root.iterdir())
 

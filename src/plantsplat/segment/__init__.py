@@ -56,6 +56,18 @@ def _write_png(path: Path, img: np.ndarray) -> None:
             raise PlantsplatError(f"{path}: could not write image; check the disk space and permissions")
 
 
+def mask_iou(a, b) -> float:
+    """Intersection over union of two bool masks of one shape (numpy arrays or torch tensors); 0 when both are empty.
+
+    Example:
+        >>> import numpy as np
+        >>> mask_iou(np.array([True, True, False]), np.array([True, False, False]))
+        0.5
+    """
+    union = float((a | b).sum())
+    return float((a & b).sum()) / union if union > 0 else 0.0
+
+
 def preview_path(ws: Workspace) -> Path:
     """Where the mask contact sheet goes: ``WS/masks_preview.png``."""
     return ws.root / PREVIEW_NAME

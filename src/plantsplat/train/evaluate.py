@@ -131,6 +131,8 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
             per_view.append(row)
     pbr_segmented_error = None
     if pbr_renders:
+        from plantsplat.segment import mask_iou
+
         seg_masks, pbr_segmented_error = segment_renders(ws, pbr_renders)
         for row in per_view if seg_masks else ():
             img, alpha = (t.cpu() for t in cache.get(row["name"], 1)[:2])
@@ -138,10 +140,8 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
             m = torch.from_numpy(seg_masks[row["name"]]).float()[..., None]  # [h, w, 1] in {0, 1}
             pred = torch.from_numpy(pbr_renders[row["name"]]).float() / 255.0
             pred_m = pred * m + (1 - m) * bg
-            a, b = alpha > 0.5, m > 0.5
             row["pbr_segmented"] = {"psnr": float(psnr(pred_m, gt_fg)), "ssim": float(ssim(pred_m, gt_fg)),
-                                    "lpips": lpips(net, pred_m, gt_fg),
-                                    "mask_iou": float((a & b).sum() / max(1, int((a | b).sum())))}
+                                    "lpips": lpips(net, pred_m, gt_fg), "mask_iou": mask_iou(alpha > 0.5, m > 0.5)}
 
     def agg(kind):
         rows = [r[kind] for r in per_view if kind in r]
