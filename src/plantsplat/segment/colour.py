@@ -123,12 +123,8 @@ def unripe_colour_mask(rgb: np.ndarray, model: ColourModel = ColourModel()) -> n
         >>> bool(unripe_colour_mask(np.full((1, 1, 3), (40, 140, 40), np.uint8))[0, 0])  # leaf
         False
     """
-    import cv2
-
-    hsv = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2HSV)
-    h, s, v = hsv[..., 0], hsv[..., 1], hsv[..., 2]
-    return ((h >= model.unripe_hue[0]) & (h <= model.unripe_hue[1]) & (s >= model.unripe_sat[0])
-            & (s <= model.unripe_sat[1]) & (v >= model.unripe_value))
+    return _hsv_box(rgb, (model.unripe_hue[0], model.unripe_sat[0], model.unripe_value),
+                    (model.unripe_hue[1], model.unripe_sat[1], 255))
 
 
 def stem_colour_mask(rgb: np.ndarray, model: ColourModel = ColourModel()) -> np.ndarray:
@@ -142,8 +138,12 @@ def stem_colour_mask(rgb: np.ndarray, model: ColourModel = ColourModel()) -> np.
         >>> bool(stem_colour_mask(np.full((1, 1, 3), (120, 110, 100), np.uint8))[0, 0])  # grey-brown
         False
     """
+    return _hsv_box(rgb, (model.stem_hue[0], model.stem_sat, model.min_value), (model.stem_hue[1] - 1, 255, 255))
+
+
+def _hsv_box(rgb: np.ndarray, lo: tuple[int, int, int], hi: tuple[int, int, int]) -> np.ndarray:
+    """Pixels of an RGB uint8 image whose OpenCV HSV (hue 0-179) lies in the box ``lo``..``hi`` (both inclusive)."""
     import cv2
 
     hsv = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2HSV)
-    h, s, v = hsv[..., 0], hsv[..., 1], hsv[..., 2]
-    return (h >= model.stem_hue[0]) & (h < model.stem_hue[1]) & (s >= model.stem_sat) & (v >= model.min_value)
+    return cv2.inRange(hsv, np.array(lo, np.uint8), np.array(hi, np.uint8)) > 0
