@@ -534,3 +534,64 @@ def test_fruit_colours_where_the_fruit_hull_projects_are_fruit():
     assert on[wall].mean() < 0.02
     assert off[fr > 0].mean() < 0.2 and off[fu > 0].mean() < 0.2
     assert on[40:80, 40:80].all()  # the leaf, as before
+
+
+def test_ridge_contrast_marks_runs_not_edges_wide_regions_or_noise():
+    """A thin olive run on a noisy olive wall stands out from both flanks; a step edge, the inside of a wide band and
+    the noisy wall do not. On a vertical run the flank is horizontal and the score is the root of the dot product of
+    the colour differences to the two flanks (blurred CIELAB, as a slow reference computes it pixel by pixel) at the
+    best reach."""
+    from plantsplat.segment.classic import _RIDGE_REACH, ridge_contrast
+
+    rng = np.random.default_rng(0)
+    img = np.clip(rng.normal((112, 118, 80), 6, (200, 240, 3)), 0, 255).astype(np.uint8)  # noisy olive wall
+    img[:, 60:65] = (83, 80, 30)  # a petiole, 5 px wide, darker and more saturated than the wall
+    img[:, 120:180] = (83, 80, 30)  # a wide band of the same colour: two edges and an inside
+    img[:, 200:] = (150, 60, 60)  # a step to another colour
+    score, flank = ridge_contrast(img, 1.0)
+    assert np.median(score[20:180, 62]) > 12  # the run
+    assert np.percentile(score[20:180, 100], 95) < 12  # the wall
+    assert np.percentile(score[20:180, 140:160], 95) < 12  # inside the band
+    assert np.percentile(score[20:180, 196:205], 95) < 12  # the step edge
+    assert np.percentile(score[20:180, 118:123], 95) < 12  # the band's edge
+    # reference on the run: blurred Lab, flanks at +-d along x, best d
+    lab = cv2.GaussianBlur(cv2.cvtColor(img, cv2.COLOR_RGB2LAB).astype(np.float32), (0, 0), 1.0)
+    for y in (50, 100, 150):
+        fx, fy = flank[:, y, 62]
+        assert abs(fy) < 0.05 * abs(fx)
+        ref = np.sqrt(max(float(np.dot(lab[y, 62 - int(d)] - lab[y, 62], lab[y, 62 + int(d)] - lab[y, 62]))
+                          for d in _RIDGE_REACH))
+        assert score[y, 62] == pytest.approx(ref, rel=0.05)
+
+
+def test_stems_where_the_stem_hull_projects_are_plant():
+    """Where the stems seen in 3D project, an olive petiole leaving a leaf against an olive wall of its colours is
+    plant, though the colour rules leave it out; a run touching nothing, and a post outside that region, are not."""
+    from plantsplat.segment.classic import _NBINS, ClassicSegmenter, _colour_bins
+
+    rng = np.random.default_rng(1)
+    img = np.clip(rng.normal((112, 118, 80), 6, (220, 300, 3)), 0, 255).astype(np.uint8)  # noisy olive wall
+    olive, brown = (83, 80, 30), (80, 50, 20)
+    cv2.circle(img, (60, 60), 35, (40, 120, 35), -1)  # leaf
+    cv2.line(img, (75, 95), (120, 210), olive, 5)  # petiole from the leaf's edge down
+    cv2.line(img, (170, 90), (200, 210), olive, 5)  # a run of the same colour touching nothing
+    cv2.line(img, (280, 0), (280, 220), brown, 5)  # a post, touching the leaf's row but outside the stem region
+    cv2.line(img, (95, 60), (280, 60), olive, 3)  # a run from the leaf to the post, outside the stem region
+    stems = np.zeros(img.shape[:2], bool)
+    stems[80:220, 60:220] = True
+    core = np.zeros(img.shape[:2], np.uint8)
+    cv2.line(core, (82, 112), (116, 200), 1, 2)
+    lone = np.zeros(img.shape[:2], np.uint8)
+    cv2.line(lone, (172, 95), (198, 205), 1, 2)
+    seg = ClassicSegmenter(ClassicSettings(edge_radius=0))
+    seg._bg_learned, seg._bg_ring = True, np.zeros(_NBINS, bool)
+    q = _colour_bins(img)
+    seg._bg_ring[np.unique(q[(np.abs(img.astype(int) - (112, 118, 80)).max(axis=2) < 40)])] = True  # the wall's colours
+    seg._bg_ring[_colour_bins(np.array([[olive, brown]], np.uint8))[0]] = True
+    roi = np.ones(img.shape[:2], bool)
+    on = seg._plant_in_box(img, roi, None, 540, 960, None, stems)
+    off = seg._plant_in_box(img, roi, None, 540, 960, None, None)
+    assert on[core > 0].mean() > 0.9 and off[core > 0].mean() < 0.2
+    assert not on[lone > 0].any()
+    assert not on[:, 240:].any()
+    assert on[40:80, 40:80].all()  # the leaf, as before
