@@ -563,9 +563,9 @@ class ClassicSegmenter:
             log.info("segment: plant-coloured pot found (rim at %.1f cm, radius %.1f cm); left out", pot["z"][1],
                      pot["r"][1])
         if s.stem_contrast > 0:
-            # stems: the hull carved from plant colours plus thin runs standing out from their flanks, joined to the
-            # plant, outside the plant's own hull (and the pot). Posts, wood grain and object edges behind the plant
-            # lie elsewhere from other views and are carved away
+            # stems: the hull carved from the thin runs that stand out from their flanks alone, where it joins the
+            # plant's hull, outside that hull, above the floor and outside the pot. Posts, wood grain and object edges
+            # behind the plant lie elsewhere from other views and are carved away
             socc, _, _ = carve(self._stem_smalls, s.hull_voxels, s.stem_keep_fraction)
             lab, _ = ndimage.label(socc | plant, structure=np.ones((3, 3, 3)))
             joined = np.isin(lab, np.unique(lab[plant]))
