@@ -17,7 +17,9 @@ Per capture (all frames at once):
    A plant-coloured pot shows up in the hull as a solid block on the ground whose horizontal sections
    are filled discs (leaves are thin): :func:`geometry.find_pot` fits a frustum to it; its voxels
    leave the plant hull, its silhouette leaves the plant region wherever no plant voxel lies in front
-   of it, and it hides the cube where the cube stands behind it.
+   of it, and it hides the cube where the cube stands behind it. Thin runs that stand out from the image on
+   both sides (:func:`ridge_contrast`) are carved into a stem hull; where it joins the plant it is stem,
+   whatever its colour.
 3. **Per frame.** The plant's hull is projected (with a margin) as the region of interest. Inside it,
    plant colours are taken with hysteresis (strong seeds grow into weak pixels; weak red only from
    strong red fruit, so dark red walls next to leaves are not grown into), small pale blobs
