@@ -127,8 +127,8 @@ class ClassicSettings:
     (``stem_keep_fraction``); its pieces joined to the plant's hull, above the floor and outside the pot, are stems,
     and where they project the candidates touching the plant are added. Posts, wood grain, tile joints and the edges of
     objects behind the plant lie elsewhere from other views and are carved away; 0 = off. Chosen on the benchmark's
-    seeds 0-4 (120 frames 540x960): mean IoU 0.8655 -> 0.8703 (seed 0, olive petioles against an olive wall: 0.801 ->
-    0.825; the others within 0.001); on seeds 10-14, not used to choose it: 0.8927 -> 0.8922."""
+    seeds 0-4 (120 frames 540x960): mean IoU 0.8655 -> 0.8717 (seed 0, olive petioles against an olive wall: 0.802 ->
+    0.832; the others within 0.002); on seeds 10-14, not used to choose it: 0.8927 -> 0.8919."""
     stem_keep_fraction: float = 0.5
     """Keep fraction of the hull carved from the stem candidates (leaves hide stems from part of the orbit; runs of
     texture do not line up)."""
@@ -232,8 +232,8 @@ def ridge_contrast(rgb: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarra
     centre; 0 where negative), best over the reaches: about the colour distance to the flanks on a stem or a wire
     (both flanks differ the same way), low inside a wide region and on an edge (one flank is alike, or, at an edge's
     blurred middle, the flanks differ in opposite ways), and on noise (smoothed away); 0 where the local gradients
-    have no one direction (texture, specks, corners). Returns ``(score float32 [H, W], flank float32 [2, H, W])``: ``flank`` is the (x, y) offset from each
-    pixel to one side at its best reach (the other side is at minus it).
+    have no one direction (texture, specks, corners). Returns ``(score float32 [H, W], flank float32 [2, H, W])``:
+    ``flank`` is the (x, y) offset from each pixel to one side at its best reach (the other side is at minus it).
     """
     import cv2
 
