@@ -311,6 +311,15 @@ def _components_with(mask: np.ndarray, marker: np.ndarray) -> np.ndarray:
     return ok[lab]
 
 
+def _thin_runs(mask: np.ndarray, r: int) -> np.ndarray:
+    """The pixels of the bool ``mask`` not within a pixel of what survives an opening by a disk of radius ``r``: its
+    runs thinner than about ``2 r`` px (stems), without the wide regions (soil, wood, a wall). bool, same shape."""
+    import cv2
+
+    wide = cv2.dilate(cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, _disk(r)), _disk(1))
+    return mask & (wide == 0)
+
+
 def _disk(r: float):
     import cv2
 
@@ -421,11 +430,8 @@ class ClassicSegmenter:
             sides = [cv2.remap(pf, xx + sg * step[0], yy + sg * step[1], cv2.INTER_NEAREST) > 0 for sg in (-1.0, 1.0)]
             cand &= ~(sides[0] & sides[1])
         r = max(1, int(round(s.stem_px * scale)))
-        c8 = cand.astype(np.uint8)
-        wide = cv2.dilate(cv2.morphologyEx(c8, cv2.MORPH_OPEN, _disk(r)), _disk(1))
-        thin = (cand & (wide == 0)).astype(np.uint8)
         # runs, not specks: long (a stem's length is many times its width) and sparse in their bounding box
-        n, lab, st, _ = cv2.connectedComponentsWithStats(thin, connectivity=8)
+        n, lab, st, _ = cv2.connectedComponentsWithStats(_thin_runs(cand, r).astype(np.uint8), connectivity=8)
         span = np.maximum(st[:, cv2.CC_STAT_WIDTH], st[:, cv2.CC_STAT_HEIGHT]).astype(np.float64)
         ok = (span >= _RIDGE_SPAN * (2 * r + 1)) & (st[:, cv2.CC_STAT_AREA] <= 0.3 * span * span)
         ok[0] = False
@@ -792,9 +798,7 @@ class ClassicSegmenter:
             # region (soil, wood, a pot, a wall seen through a gap) and is left out. Only with the capture's learned
             # background colours, which keep out the grain of a brown floor or table next to the plant
             r = max(1, int(round(s.stem_px * max(H, W) / 960)))
-            cand = ((weak | stem_colour_mask(rgb, s.colour)) & ~bg_colour & roi & ~plant).astype(np.uint8)
-            wide = cv2.dilate(cv2.morphologyEx(cand, cv2.MORPH_OPEN, _disk(r)), _disk(1))
-            thin = (cand > 0) & (wide == 0)
+            thin = _thin_runs((weak | stem_colour_mask(rgb, s.colour)) & ~bg_colour & roi & ~plant, r)
             plant |= _components_with(thin, cv2.dilate(plant.astype(np.uint8), _disk(2)).astype(bool))
         if stems is not None and stems.any() and plant.any():
             # where the stems seen in 3D project: thin runs that stand out from both flanks, touching the plant,
