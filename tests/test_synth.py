@@ -407,3 +407,28 @@ def test_object_renders_are_the_plant_and_cube_alone(tmp_path):
         assert (outside == 0).mean() > 0.95  # the room is not drawn
         assert img[~ring].max(axis=-1).mean() > 20  # ...while the frame shows it
     assert "objects" in gt["render"]
+
+
+def test_class_maps_follow_the_masks(tmp_path):
+    """classes/ holds the class id behind each pixel centre: its plant, calyx and cube ids are exactly the mask's
+    foreground, the pot, soil and room ids its background; frames and masks are those of a capture without it."""
+    import cv2
+
+    from plantsplat.synth import SynthConfig, generate
+    from plantsplat.synth.mesh import FOREGROUND_CLASSES
+
+    kw = dict(seed=5, frames=3, width=180, height=320)
+    a = generate(SynthConfig(out=tmp_path / "a", class_maps=True, **kw))["out"]
+    b = generate(SynthConfig(out=tmp_path / "b", **kw))["out"]
+    assert not (b / "classes").exists()
+    gt = _gt(a)
+    assert "classes" in gt["render"]
+    seen = set()
+    for fr in gt["frames"]:
+        assert (a / fr["file"]).read_bytes() == (b / fr["file"]).read_bytes()
+        ids = cv2.imread(str(a / fr["classes"]), cv2.IMREAD_UNCHANGED)
+        m = cv2.imread(str(a / fr["mask"]), cv2.IMREAD_GRAYSCALE) > 127
+        assert ids.dtype == np.uint8 and ids.shape == m.shape
+        assert np.array_equal(np.isin(ids, FOREGROUND_CLASSES), m)
+        seen |= set(np.unique(ids).tolist())
+    assert {1, 20, 21, 31} <= seen  # leaves, the pot, the soil and a wall

@@ -40,6 +40,10 @@ class SynthConfig:
     object_renders: bool = False
     """Also write objects/: the plant and the cube alone over black, without the sensor model, at the capture's base
     exposure: what an exact object-centric model would render (the trainer benchmark's ceiling)."""
+    class_maps: bool = False
+    """Also write classes/: the class id of the surface seen through each pixel centre (the masks' rule), so that
+    mask errors can be told apart by organ and scene part (1 leaf, 2 petiole, 3 crown, 4 fruit, 5 peduncle, 6 flower,
+    7 calyx, 10-15 cube faces, 20 pot, 21 soil, 22 platform, 30 floor, 31 wall, 32 furniture; 0 nothing)."""
     crf: int = 18
     """H.264 constant rate factor (lower = better quality, bigger file)."""
     msaa: int = 4

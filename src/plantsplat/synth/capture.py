@@ -30,6 +30,9 @@ PIXEL_CONVENTION = ("OpenCV: pixel (u, v) has its centre at integer coordinates,
 OBJECTS_RULE = ("colour pass of the foreground meshes (plant, cube) alone over black, lit and shadowed as in the "
                 "frame, developed without noise, blur, exposure or white-balance drift or vignetting at the capture's "
                 "base gain, with the frames' MSAA")
+CLASSES_RULE = ("id pass without MSAA (the masks' rule): the class id of the surface seen through the pixel centre, "
+                "uint8: 0 nothing, 1 leaf, 2 petiole, 3 crown, 4 fruit, 5 peduncle, 6 flower, 7 calyx, 10-15 cube faces "
+                "(+x, -x, +y, -y, top, bottom), 20 pot, 21 soil, 22 platform, 30 floor, 31 wall, 32 furniture")
 MASK_RULE = ("id pass without MSAA: a pixel is 255 when the surface seen through the pixel centre belongs to the "
              "plant (leaf, petiole, crown, fruit with calyx, peduncle, flower) or the cube, else 0")
 
@@ -94,7 +97,7 @@ def _remove_stale_frames(out: Path, n: int) -> None:
         return
     if not isinstance(old, dict) or old.get("format") != FORMAT:
         return
-    for sub in ("frames", "masks", "objects"):
+    for sub in ("frames", "masks", "objects", "classes"):
         for p in (out / sub).glob("frame_*.png"):
             stem = p.stem.split("_")[-1]
             if stem.isdigit() and int(stem) >= n:
@@ -125,6 +128,8 @@ def generate(cfg: SynthConfig) -> dict:
     (out / "masks").mkdir(exist_ok=True)
     if cfg.object_renders:
         (out / "objects").mkdir(exist_ok=True)
+    if cfg.class_maps:
+        (out / "classes").mkdir(exist_ok=True)
     s_scene, s_tex, s_cam, s_sensor, s_gt, s_noise = np.random.SeedSequence(cfg.seed).spawn(6)
     cube = CubeSpec()
 
@@ -203,6 +208,8 @@ def generate(cfg: SynthConfig) -> dict:
             name = IMAGE_PATTERN.format(i)
             pending.append(pool.submit(write_image_atomic, out / "frames" / name, rgb))
             pending.append(pool.submit(write_image_atomic, out / "masks" / name, mask))
+            if cfg.class_maps:
+                pending.append(pool.submit(write_image_atomic, out / "classes" / name, ids))
             if ideal is not None:
                 obj = ideal.develop(renderer.render_objects(c2ws[i]), i, np.random.default_rng(0))
                 pending.append(pool.submit(write_image_atomic, out / "objects" / name, obj))
@@ -215,6 +222,7 @@ def generate(cfg: SynthConfig) -> dict:
                 previews.append(_preview_tile(rgb, mask, visible, rings[i]))
             frames_json.append(dict(index=i, file=f"frames/{name}", mask=f"masks/{name}",
                                     **({"object": f"objects/{name}"} if cfg.object_renders else {}),
+                                    **({"classes": f"classes/{name}"} if cfg.class_maps else {}),
                                     time_s=i / FPS, ring=rings[i],
                                     c2w=c2ws[i], cube_markers_visible=visible,
                                     motion_blur_px=float(sensor.blur_px[i]),
@@ -258,6 +266,7 @@ def generate(cfg: SynthConfig) -> dict:
         render=dict(renderer=f"moderngl {gl_renderer} (EGL)", msaa_samples=int(cfg.msaa), mask_rule=MASK_RULE,
                     clean=bool(cfg.clean), sensor=sensor.settings(), video=video_settings,
                     **({"objects": OBJECTS_RULE} if cfg.object_renders else {}),
+                    **({"classes": CLASSES_RULE} if cfg.class_maps else {}),
                     texture_layer_size=int(layers.shape[1])),
         versions=_versions(),
         timings_s=timings,
@@ -267,6 +276,7 @@ def generate(cfg: SynthConfig) -> dict:
     return dict(out=out, paths=dict(video=video_path, frames=out / "frames", masks=out / "masks",
                                     plant_gt=out / "plant_gt.ply", scene_gt=out / "scene_gt.ply",
                                     ground_truth=out / "ground_truth.json", preview=out / "preview.png",
-                                    **({"objects": out / "objects"} if cfg.object_renders else {})),
+                                    **({"objects": out / "objects"} if cfg.object_renders else {}),
+                                    **({"classes": out / "classes"} if cfg.class_maps else {})),
                 timings=timings, traits=traits, frames=cfg.frames)
 
