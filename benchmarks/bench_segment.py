@@ -77,18 +77,57 @@ def boundary_f(pred: np.ndarray, gt: np.ndarray, tol: int = 2) -> float:
     return 0.0 if precision + recall == 0 else 2 * precision * recall / (precision + recall)
 
 
+# the synthetic capture's class ids (``plantsplat synth --class-maps``) grouped into what the errors are told apart by
+CLASS_NAMES = {1: "leaf", 2: "petiole", 3: "crown", 4: "fruit", 5: "peduncle", 6: "flower", 7: "fruit",
+               **{c: "cube" for c in range(10, 16)}, 20: "pot", 21: "soil", 22: "platform", 30: "floor", 31: "wall",
+               32: "furniture", 0: "nothing"}
+
+
 def score_capture(cap: Path, ws: Workspace, frames_info: dict) -> dict:
+    """Mask IoU (mean, worst, median), boundary F, and with class maps the errors by part: ``missed_pct`` (foreground
+    pixels of each organ or the cube left out) and ``taken_pct`` (background pixels of each part taken), both in % of
+    all foreground pixels, and ``recall`` per foreground part."""
     ious, bfs = [], []
+    missed: dict[str, int] = {}
+    taken: dict[str, int] = {}
+    total: dict[str, int] = {}
+    n_fg = 0
     for f in frames_info["frames"]:
         gt = cv2.imread(str(cap / "masks" / f["source_name"]), cv2.IMREAD_GRAYSCALE) > 127
         m = cv2.imread(str(ws.masks_dir / f["name"]), cv2.IMREAD_GRAYSCALE) > 127
         ious.append(mask_iou(gt, m))
         bfs.append(boundary_f(m, gt))
+        cls_path = cap / "classes" / f["source_name"]
+        if cls_path.is_file():
+            ids = cv2.imread(str(cls_path), cv2.IMREAD_UNCHANGED)
+            n_fg += int(gt.sum())
+            for c in np.unique(ids).tolist():
+                sel = ids == c
+                name = CLASS_NAMES.get(c, str(c))
+                if gt[sel].all():
+                    total[name] = total.get(name, 0) + int(sel.sum())
+                    missed[name] = missed.get(name, 0) + int((sel & ~m).sum())
+                else:
+                    taken[name] = taken.get(name, 0) + int((sel & m).sum())
     ious = np.array(ious)
-    return {"mean_iou": round(float(ious.mean()), 4), "worst_iou": round(float(ious.min()), 4),
-            "worst_frame": frames_info["frames"][int(ious.argmin())]["source_name"],
-            "median_iou": round(float(np.median(ious)), 4), "boundary_f_2px": round(float(np.mean(bfs)), 4),
-            "per_frame_iou": [round(x, 3) for x in ious.tolist()]}
+    out = {"mean_iou": round(float(ious.mean()), 4), "worst_iou": round(float(ious.min()), 4),
+           "worst_frame": frames_info["frames"][int(ious.argmin())]["source_name"],
+           "median_iou": round(float(np.median(ious)), 4), "boundary_f_2px": round(float(np.mean(bfs)), 4),
+           "per_frame_iou": [round(x, 3) for x in ious.tolist()]}
+    if n_fg:
+        out["missed_pct"] = {k: round(100.0 * v / n_fg, 3) for k, v in sorted(missed.items(), key=lambda kv: -kv[1])}
+        out["taken_pct"] = {k: round(100.0 * v / n_fg, 3) for k, v in sorted(taken.items(), key=lambda kv: -kv[1])}
+        out["recall"] = {k: round(1.0 - missed[k] / total[k], 3) for k in missed}
+    return out
+
+
+def mean_by_part(rows: list[dict], key: str) -> dict:
+    """Mean over captures of a per-part figure (a part a capture lacks counts as 0 % for missed/taken)."""
+    parts = sorted({p for r in rows for p in r.get(key, {})})
+    if key == "recall":
+        return {p: round(float(np.mean([r[key][p] for r in rows if p in r.get(key, {})])), 3) for p in parts}
+    vals = {p: round(float(np.mean([r.get(key, {}).get(p, 0.0) for r in rows])), 3) for p in parts}
+    return dict(sorted(vals.items(), key=lambda kv: -kv[1]))
 
 
 def main() -> None:
@@ -129,7 +168,7 @@ def main() -> None:
             cap = work / f"synth_{seed}"
             if not (cap / "ground_truth.json").is_file():
                 generate(SynthConfig(out=cap, seed=seed, frames=args.frames, width=args.width, height=args.height,
-                                     force=True))
+                                     class_maps=True, force=True))
             for b in backends:
                 ws = Workspace(work / f"ws_{seed}_{b}")
                 finfo = extract_frames(cap / "frames", ws, num=10_000, blur_ratio=0.0, dup_threshold=-1.0, force=True)
@@ -156,6 +195,8 @@ def main() -> None:
                    "boundary_f_2px": round(float(np.mean([r["boundary_f_2px"] for r in rs])), 4),
                    "seconds_per_frame": round(float(np.mean([r["seconds_per_frame"] for r in rs])), 4),
                    "cpu_seconds_per_frame": round(float(np.mean([r["cpu_seconds_per_frame"] for r in rs])), 4),
+                   **{f"{k}_mean": mean_by_part(rs, k) for k in ("missed_pct", "taken_pct", "recall")
+                      if any(k in r for r in rs)},
                    "per_seed": rs}
             if b == "classic":
                 agg["met"] = {"mean_iou": agg["mean_iou"] >= 0.95, "worst_iou": agg["worst_iou"] >= 0.85,

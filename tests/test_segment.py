@@ -470,8 +470,8 @@ def test_guided_filter_matches_windowed_least_squares():
 
 def test_thin_stem_coloured_runs_attached_to_the_plant_are_plant():
     """A brown-olive petiole (not a foliage colour) leaving a leaf is plant; a wide region of the same colour touching
-    the leaf (soil, wood) and a stem-like run that touches nothing are not; off with ``stem_px=0``, and for a
-    background colour."""
+    the leaf (soil, wood), also one broken into thin pieces by pale specks (soil with perlite), and a stem-like run
+    that touches nothing are not; off with ``stem_px=0``, and for a background colour."""
     from plantsplat.segment.classic import _NBINS, ClassicSegmenter, _colour_bins
 
     img = np.full((200, 260, 3), 128, np.uint8)  # grey backdrop
@@ -480,6 +480,16 @@ def test_thin_stem_coloured_runs_attached_to_the_plant_are_plant():
     cv2.line(img, (90, 100), (200, 40), brown, 5)  # petiole from the leaf's edge
     img[150:195, 70:130] = brown  # wide brown region touching the leaf
     cv2.line(img, (150, 190), (250, 120), brown, 5)  # a run of stem colour touching nothing
+    # soil below the leaf, dotted with pale 2 x 2 px specks (perlite) every 6 px: no 9 px disk fits between them
+    img[135:195, 10:60] = brown
+    specks = np.zeros(img.shape[:2], bool)
+    for yy in range(137, 195, 6):
+        for xx in range(12 + 3 * (yy // 6 % 2), 60, 6):
+            specks[yy:yy + 2, xx:xx + 2] = True
+    img[specks] = (235, 230, 220)
+    soil = np.zeros(img.shape[:2], bool)
+    soil[135:195, 10:60] = True
+    soil &= ~specks
     stem = np.zeros(img.shape[:2], np.uint8)
     cv2.line(stem, (100, 95), (195, 43), 1, 3)  # the petiole's core, away from the leaf
     lone = np.zeros(img.shape[:2], np.uint8)
@@ -497,6 +507,7 @@ def test_thin_stem_coloured_runs_attached_to_the_plant_are_plant():
     on, off = plant(4.0), plant(0.0)
     assert on[stem > 0].mean() > 0.95 and off[stem > 0].mean() < 0.2
     assert on[wide].mean() < 0.02 and not on[lone > 0].any()
+    assert on[soil].mean() < 0.05
     seg = ClassicSegmenter(ClassicSettings(stem_px=4.0, edge_radius=0))
     seg._bg_learned, seg._bg_ring = True, np.zeros(_NBINS, bool)
     seg._bg_ring[_colour_bins(np.array([[brown]], np.uint8))[0, 0]] = True  # the brown is the room's
@@ -595,3 +606,24 @@ def test_stems_where_the_stem_hull_projects_are_plant():
     assert not on[lone > 0].any()
     assert not on[:, 240:].any()
     assert on[40:80, 40:80].all()  # the leaf, as before
+
+
+def test_fruit_sized_pieces_of_the_unripe_hull():
+    """Fruit-sized pieces of a carved grid: one fruit and two fruit touching side by side (longer than one fruit, not
+    thicker) are kept; a box, a pot-sized cylinder and a long thin slab of the same colour are not."""
+    vs = 1.0
+    x, y, z = np.meshgrid(*(np.arange(60) * vs,) * 3, indexing="ij")
+
+    def ball(c, r):
+        return (x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2 <= r * r
+
+    one = ball((8, 8, 8), 2.6)
+    truss = ball((8, 30, 8), 2.6) | ball((8, 34.5, 8), 2.6)  # touching: 9.7 cm long, 5.2 cm thick
+    box = (x >= 20) & (x < 30) & (y >= 5) & (y < 15) & (z >= 5) & (z < 15)
+    pot = ((x - 45) ** 2 + (y - 45) ** 2 <= 49) & (z >= 30) & (z < 42)
+    slab = (x >= 20) & (x < 40) & (y >= 50) & (y < 52) & (z >= 20) & (z < 40)
+    occ = one | truss | box | pot | slab
+    got = geo.fruit_sized(occ, vs, 7.0)
+    assert got[one].all() and got[truss].all()
+    assert not got[box].any() and not got[pot].any() and not got[slab].any()
+    assert not geo.fruit_sized(truss, vs, 4.0).any()  # thicker than that limit

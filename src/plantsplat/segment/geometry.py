@@ -667,6 +667,30 @@ def fill_orbit_poses(
     return out, filled
 
 
+def fruit_sized(occ: np.ndarray, vs: float, max_cm: float) -> np.ndarray:
+    """The pieces of a carved grid no thicker than a fruit: bool ``[X, Y, Z]``, the voxels of ``occ`` (bool, voxel
+    size ``vs`` cm) in 26-connected pieces whose thickness (twice the largest distance from a voxel of the piece to
+    its outside) is at most ``max_cm`` and whose longest side is at most twice that. A fruit's hull is a blob; fruit
+    hanging side by side (a truss) make a longer piece, not a thicker one; a box, a pot or a slab of wall of fruit
+    colour is thicker or longer.
+
+    Example:
+        >>> fruit_sized(occ, 1.06, 7.0).sum()    # voxels of fruit-sized pieces
+        119
+    """
+    from scipy import ndimage
+
+    out = np.zeros(occ.shape, bool)
+    lab, n = ndimage.label(occ, structure=np.ones((3, 3, 3)))
+    for sl, k in zip(ndimage.find_objects(lab), range(1, n + 1)):
+        piece = lab[sl] == k
+        longest = max(x.stop - x.start for x in sl) * vs
+        thick = 2.0 * float(ndimage.distance_transform_edt(np.pad(piece, 1)).max()) * vs
+        if thick <= max_cm and longest <= 2.0 * max_cm:
+            out[sl] |= piece
+    return out
+
+
 def find_pot(
     occ: np.ndarray, origin: np.ndarray, vs: float, min_radius: float = 3.0, min_fill: float = 0.7,
     max_base: float = 4.0, max_foot: float = 8.0, min_height: float = 4.0, rim_drop: float = 0.85, max_taper: float = 0.15,
