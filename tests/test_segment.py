@@ -418,6 +418,27 @@ def test_cube_print_matches_and_occluders_are_found(synth_capture):
     assert hidden2[black].mean() > 0.8
 
 
+def test_faces_shown_drops_faces_hidden_behind_a_pot(synth_capture):
+    """A face whose print the frame shows is kept, also half hidden; one hidden whole behind a plain block is dropped,
+    even when the block is the print's white (which the per-pixel test cannot tell from the white cells)."""
+    rgb, K, T = _cube_frame(synth_capture)
+    H, W = rgb.shape[:2]
+    expected, faces = geo.cube_appearance(T, K, None, (W, H))
+    shown = geo.faces_shown(rgb, expected, faces)
+    assert np.array_equal(shown, faces)
+    ids = [k for k in np.unique(faces[faces >= 0]) if (faces == k).sum() > 200]
+    assert len(ids) >= 2
+    _, xs = np.nonzero(faces == ids[-1])
+    half = (faces == ids[-1]) & (np.arange(W)[None, :] < np.median(xs))  # the last face's left half
+    for colour in ((235, 235, 230), (90, 90, 95)):  # a white pot, a grey pot
+        painted = rgb.copy()
+        painted[faces == ids[0]] = colour
+        painted[half] = colour
+        got = geo.faces_shown(painted, expected, faces)
+        assert not (got == ids[0]).any()
+        assert (got == ids[-1]).sum() == (faces == ids[-1]).sum()
+
+
 def test_cube_alignment_recovers_a_shift(synth_capture):
     rgb, K, T = _cube_frame(synth_capture)
     H, W = rgb.shape[:2]

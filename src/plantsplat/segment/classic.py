@@ -888,7 +888,9 @@ class ClassicSegmenter:
                     moved = geo.align_cube(rgb, expected, faces)
                     if moved is not None:
                         expected, faces, _ = moved
-                        cube = faces >= 0
+                    # and only the faces whose print the frame shows (a pot of any colour may hide the cube)
+                    faces = geo.faces_shown(rgb, expected, faces)
+                    cube = faces >= 0
                 hidden = geo.cube_occluded(rgb, expected, faces)
                 cube &= ~(hidden | (faces < 0))
             if ctx.pot is not None and cube.any():
