@@ -28,6 +28,7 @@ from plantsplat.frames import extract_frames
 from plantsplat.io import write_json_atomic
 from plantsplat.resources import machine_info
 from plantsplat.segment import mask_iou, segment_workspace
+from plantsplat.synth.mesh import CALYX, CLASS_NAMES
 from plantsplat.workspace import Workspace
 
 RESULTS = Path(__file__).resolve().parent / "results" / "segment.json"
@@ -77,10 +78,9 @@ def boundary_f(pred: np.ndarray, gt: np.ndarray, tol: int = 2) -> float:
     return 0.0 if precision + recall == 0 else 2 * precision * recall / (precision + recall)
 
 
-# the synthetic capture's class ids (``plantsplat synth --class-maps``) grouped into what the errors are told apart by
-CLASS_NAMES = {1: "leaf", 2: "petiole", 3: "crown", 4: "fruit", 5: "peduncle", 6: "flower", 7: "fruit",
-               **{c: "cube" for c in range(10, 16)}, 20: "pot", 21: "soil", 22: "platform", 30: "floor", 31: "wall",
-               32: "furniture", 0: "nothing"}
+# the synthetic capture's class ids (``plantsplat synth --class-maps``) grouped into what the errors are told apart by:
+# the calyx counts as fruit, the six cube faces as one cube
+PART_OF_CLASS = {c: "fruit" if c == CALYX else name.split()[0] for c, name in CLASS_NAMES.items()}
 
 
 def score_capture(cap: Path, ws: Workspace, frames_info: dict) -> dict:
@@ -103,7 +103,7 @@ def score_capture(cap: Path, ws: Workspace, frames_info: dict) -> dict:
             n_fg += int(gt.sum())
             for c in np.unique(ids).tolist():
                 sel = ids == c
-                name = CLASS_NAMES.get(c, str(c))
+                name = PART_OF_CLASS.get(c, str(c))
                 if gt[sel].all():
                     total[name] = total.get(name, 0) + int(sel.sum())
                     missed[name] = missed.get(name, 0) + int((sel & ~m).sum())

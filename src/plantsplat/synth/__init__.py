@@ -42,8 +42,7 @@ class SynthConfig:
     exposure: what an exact object-centric model would render (the trainer benchmark's ceiling)."""
     class_maps: bool = False
     """Also write classes/: the class id of the surface seen through each pixel centre (the masks' rule), so that
-    mask errors can be told apart by organ and scene part (1 leaf, 2 petiole, 3 crown, 4 fruit, 5 peduncle, 6 flower,
-    7 calyx, 10-15 cube faces, 20 pot, 21 soil, 22 platform, 30 floor, 31 wall, 32 furniture; 0 nothing)."""
+    mask errors can be told apart by organ and scene part (ids named in :data:`plantsplat.synth.mesh.CLASS_NAMES`)."""
     crf: int = 18
     """H.264 constant rate factor (lower = better quality, bigger file)."""
     msaa: int = 4

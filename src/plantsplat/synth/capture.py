@@ -18,6 +18,7 @@ from plantsplat.errors import UsageError
 from plantsplat.io import write_image_atomic, write_json_atomic
 from plantsplat.log import get_logger, progress
 from plantsplat.synth import FORMAT, SynthConfig
+from plantsplat.synth.mesh import CLASS_NAMES
 from plantsplat.workspace import IMAGE_PATTERN, prepare_output_dir
 
 log = get_logger(__name__)
@@ -31,8 +32,7 @@ OBJECTS_RULE = ("colour pass of the foreground meshes (plant, cube) alone over b
                 "frame, developed without noise, blur, exposure or white-balance drift or vignetting at the capture's "
                 "base gain, with the frames' MSAA")
 CLASSES_RULE = ("id pass without MSAA (the masks' rule): the class id of the surface seen through the pixel centre, "
-                "uint8: 0 nothing, 1 leaf, 2 petiole, 3 crown, 4 fruit, 5 peduncle, 6 flower, 7 calyx, 10-15 cube faces "
-                "(+x, -x, +y, -y, top, bottom), 20 pot, 21 soil, 22 platform, 30 floor, 31 wall, 32 furniture")
+                "uint8: " + ", ".join(f"{c} {name}" for c, name in sorted(CLASS_NAMES.items())))
 MASK_RULE = ("id pass without MSAA: a pixel is 255 when the surface seen through the pixel centre belongs to the "
              "plant (leaf, petiole, crown, fruit with calyx, peduncle, flower) or the cube, else 0")
 

@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from plantsplat.cube import FACE_NAMES
+
 # class ids written by the id pass (0 = nothing drawn)
 LEAF, PETIOLE, CROWN, FRUIT, PEDUNCLE, FLOWER = 1, 2, 3, 4, 5, 6
 PLANT_CLASSES = (LEAF, PETIOLE, CROWN, FRUIT, PEDUNCLE, FLOWER)
@@ -23,6 +25,10 @@ CUBE_BASE = 10  # cube faces: 10 + face index (order of plantsplat.cube.FACE_NAM
 CUBE_CLASSES = tuple(range(CUBE_BASE, CUBE_BASE + 6))
 POT, SOIL, PLATFORM, FLOOR, WALL, FURNITURE, CALYX = 20, 21, 22, 30, 31, 32, 7
 FOREGROUND_CLASSES = PLANT_CLASSES + (CALYX,) + CUBE_CLASSES
+CLASS_NAMES = {0: "nothing", LEAF: "leaf", PETIOLE: "petiole", CROWN: "crown", FRUIT: "fruit", PEDUNCLE: "peduncle",
+               FLOWER: "flower", CALYX: "calyx", **{CUBE_BASE + i: f"cube {face}" for i, face in enumerate(FACE_NAMES)},
+               POT: "pot", SOIL: "soil", PLATFORM: "platform", FLOOR: "floor", WALL: "wall", FURNITURE: "furniture"}
+"""Name of each class id (the id pass, and the capture's ``classes/`` maps)."""
 ORGAN_OF_CLASS = {LEAF: 1, PETIOLE: 2, CROWN: 3, FRUIT: 4, CALYX: 4, PEDUNCLE: 5, FLOWER: 6}
 """Organ code written in the PLYs (1 leaf, 2 petiole, 3 crown, 4 fruit, 5 peduncle, 6 flower)."""
 
