@@ -139,6 +139,7 @@ def run_modes(ws: Workspace, iterations: int | None, max_res: int | None, modes=
         res[mode]["s_per_iteration"] = s["train_seconds"] / max(1, s["iterations"])
         res[mode]["cpu_s_per_iteration"] = s["train_cpu_seconds"] / max(1, s["iterations"])
         res[mode]["loadavg_after"] = os.getloadavg()
+        res[mode]["nonfinite_grad_steps"] = s.get("nonfinite_grad_steps")  # steps whose NaN/inf gradients were dropped
         if mode == "full":
             res["pbr"] = m["pbr"]
             res["pbr_segmented"] = m.get("pbr_segmented")
@@ -179,7 +180,8 @@ def object_on_segmented_masks(ws: Workspace, iterations: int | None, max_res: in
                              "train_cpu_seconds", "resolution", "iterations", "n_test_views")}
     res.update({"segment_seconds": round(seg_seconds, 1), "mask_iou_mean": float(np.mean(ious)),
                 "mask_iou_min": float(np.min(ious)), "same_test_views_as_object": same_split,
-                "wall_seconds_incl_eval": time.perf_counter() - t0, "loadavg_after": os.getloadavg()})
+                "wall_seconds_incl_eval": time.perf_counter() - t0, "loadavg_after": os.getloadavg(),
+                "nonfinite_grad_steps": s.get("nonfinite_grad_steps")})
     print("object_segmented", {k: res[k] for k in ("composite", "foreground", "mask_iou_mean", "train_seconds")},
           flush=True)
     return res

@@ -234,6 +234,71 @@ def test_nan_loss_stops_and_keeps_checkpoint(synth_capture, tmp_path, monkeypatc
     assert (ws.train_dir / "checkpoint.pt").is_file()
 
 
+
+class _NanPixelGrad:
+    """Identity on a render's colour whose backward puts NaN into the gradient of a 4x4 patch at its centre."""
+
+    @staticmethod
+    def apply(color):
+        import torch
+
+        class F(torch.autograd.Function):
+            @staticmethod
+            def forward(ctx, x):
+                return x.view_as(x)
+
+            @staticmethod
+            def backward(ctx, g):
+                g = g.clone()
+                h, w = g.shape[0] // 2, g.shape[1] // 2
+                g[h - 2:h + 2, w - 2:w + 2] = float("nan")
+                return g
+
+        return F.apply(color)
+
+
+def _poison_grads(monkeypatch, trainer, steps):
+    """Make the renders of the given (0-based) training steps back-propagate NaN through a few pixels."""
+    real_render = trainer.render
+    calls = {"n": 0}
+
+    def poisoned(*a, **k):
+        out = real_render(*a, **k)
+        if calls["n"] in steps:
+            out.color = _NanPixelGrad.apply(out.color)
+        calls["n"] += 1
+        return out
+
+    monkeypatch.setattr(trainer, "render", poisoned)
+
+
+def test_nan_gradients_are_skipped_and_counted(synth_capture, tmp_path, monkeypatch):
+    """A step whose gradient is NaN for a few pixels (the loss finite) skips the update of the Gaussians drawn
+    there: training finishes with a finite model and reports the step; without the guard Adam wrote NaN into
+    their means and the next render stopped the run."""
+    import torch
+
+    from plantsplat.train import trainer
+
+    ws = synth_workspace(synth_capture(), tmp_path / "ws", every=4)
+    _poison_grads(monkeypatch, trainer, {3})
+    cfg = trainer.TrainConfig(iterations=10, max_resolution=64, num_downscales=0, evaluate=False, init_points=2000)
+    s = trainer.train_workspace(ws, cfg)
+    assert s["nonfinite_grad_steps"] == 1 and s["nonfinite_grad_gaussians"] > 0
+    params, _ = trainer.load_model(ws)
+    assert all(bool(torch.isfinite(v).all()) for v in params.values())
+
+
+def test_nan_gradients_that_persist_stop_the_run(synth_capture, tmp_path, monkeypatch):
+    from plantsplat.train import trainer
+
+    ws = synth_workspace(synth_capture(), tmp_path / "ws", every=4)
+    _poison_grads(monkeypatch, trainer, set(range(2, 100)))
+    monkeypatch.setattr(trainer, "_MAX_NONFINITE_RUN", 3)
+    cfg = trainer.TrainConfig(iterations=10, max_resolution=64, num_downscales=0, evaluate=False, init_points=2000)
+    with pytest.raises(PlantsplatError, match="gradients were NaN/inf 3 steps in a row"):
+        trainer.train_workspace(ws, cfg)
+
 def test_bad_inputs(synth_capture, tmp_path):
     from plantsplat.train.trainer import TrainConfig, train_workspace
 

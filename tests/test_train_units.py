@@ -264,6 +264,36 @@ def test_strategy_grow_prune_keeps_optimizer_in_sync():
         torch.testing.assert_close(params[k].detach(), ref[k].detach(), atol=1e-6, rtol=1e-5)
 
 
+
+def test_nonfinite_gradients_are_zeroed_per_gaussian():
+    """Only the Gaussians (model or occluder) with a NaN/inf entry in any gradient lose their gradients, all of
+    them; the screen-space means' gradient rows follow the render's order (model first, occluders after)."""
+    from plantsplat.train.trainer import _drop_nonfinite_grads
+
+    def group(n, seed):
+        g = torch.Generator().manual_seed(seed)
+        p = torch.nn.ParameterDict({"means": torch.nn.Parameter(torch.zeros(n, 3)),
+                                    "sh0": torch.nn.Parameter(torch.zeros(n, 1, 3))})
+        for t in p.values():
+            t.grad = torch.randn(t.shape, generator=g)
+        return p
+
+    model, occ = group(6, 0), group(4, 1)
+    means2d = torch.zeros(10, 2, requires_grad=True)
+    means2d.grad = torch.randn(10, 2)
+    model["sh0"].grad[1, 0, 2] = float("nan")
+    model["means"].grad[4, 0] = float("inf")
+    means2d.grad[7, 1] = float("-inf")  # occluder 1
+    before = {k: v.grad.clone() for k, v in model.items()}
+    n, where = _drop_nonfinite_grads([("", model), ("occluder ", occ)], means2d)
+    assert n == 3 and set(where) == {"sh0", "means", "occluder means2d"}
+    for k, v in model.items():
+        assert torch.equal(v.grad[[1, 4]], torch.zeros_like(v.grad[[1, 4]]))
+        assert torch.equal(v.grad[[0, 2, 3, 5]], before[k][[0, 2, 3, 5]])
+    assert torch.equal(occ["means"].grad[1], torch.zeros(3)) and bool(occ["means"].grad[0].ne(0).all())
+    assert torch.equal(means2d.grad[[1, 4, 7]], torch.zeros(3, 2)) and bool(torch.isfinite(means2d.grad).all())
+    assert _drop_nonfinite_grads([("", model), ("occluder ", None)], means2d) == (0, [])
+
 def test_strategy_opacity_reset():
     from plantsplat.train.model import make_optimizers
     from plantsplat.train.strategy import DensityStrategy

@@ -277,6 +277,7 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
     torch.manual_seed(rc.seed)
     start = 0
     resumed = False
+    nonfinite = {"steps": 0, "gaussians": 0}  # steps whose gradients had NaN/inf entries (see _drop_nonfinite_grads)
     if paths["ckpt"].is_file() and not cfg.force:
         blob = load_checkpoint(paths["ckpt"])
         old = blob["extra"].get("config", {})
@@ -296,6 +297,7 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
             rng.bit_generator.state = blob["extra"]["rng"]
         resumed = True
         occ = _occluders_from(blob["extra"].get("occluders"), device)
+        nonfinite.update(blob["extra"].get("nonfinite_grads", {}))
         log.info("resuming %s from step %d of %d (%d Gaussians)", paths["ckpt"], start, rc.iterations,
                  params["means"].shape[0])
     else:
@@ -326,10 +328,11 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
     cpu_start = time.process_time()
     last_ckpt = t_start
     loss_ema = psnr_ema = None
+    bad_run = 0  # consecutive steps with non-finite gradients
 
     def checkpoint(step: int) -> None:
         extra = dict(extra_base, train_seconds=elapsed0 + time.perf_counter() - t_start,
-                     rng=rng.bit_generator.state, occluders=_tensors(occ))
+                     rng=rng.bit_generator.state, occluders=_tensors(occ), nonfinite_grads=dict(nonfinite))
         save_checkpoint(paths["ckpt"], step, params, optimizers, state, extra)
 
     with make_progress() as bar:
@@ -361,7 +364,7 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
             try:
                 out = render(params, viewmat, Kc, x1 - x0, y1 - y0, sh_deg, rc.backend, occ, bg)
             except PlantsplatError as exc:  # non-finite parameters: the previous step diverged
-                _diverged(paths, last_good, exc)
+                _diverged(paths, last_good, exc, "the model's parameters became NaN/inf")
             n_model = params["means"].shape[0]
             strategy.step_pre_backward(params, optimizers, state, step, out)
             # render composited over bg, [h', w', 3], against gt: (1 - l) L1 + l (1 - SSIM)
@@ -369,6 +372,18 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
             if not torch.isfinite(loss):
                 _diverged(paths, last_good, None)
             loss.backward()
+            bad, where = _drop_nonfinite_grads([("", params), ("occluder ", occ)], out.means2d)
+            if bad:
+                nonfinite["steps"] += 1
+                nonfinite["gaussians"] += bad
+                bad_run += 1
+                if nonfinite["steps"] == 1:
+                    log.warning("step %d: NaN/inf gradients (%s) for %d Gaussians; their update is skipped this step "
+                                "(counted in the summary as nonfinite_grad_steps)", step, ", ".join(where), bad)
+                if bad_run >= _MAX_NONFINITE_RUN:
+                    _diverged(paths, last_good, None, f"the gradients were NaN/inf {bad_run} steps in a row")
+            else:
+                bad_run = 0
             # grads are w.r.t. crop pixels; normalise by the full (downscaled) image size as gsplat
             strategy.step_post_backward(params, optimizers, state, step, _ModelPart(out, n_model), w, h)
             for o in list(optimizers.values()) + list((occ_opt or {}).values()):
@@ -406,6 +421,7 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
         "train_cpu_seconds": round(time.process_time() - cpu_start, 2),
         "train_resolution_scale": base_scale, "final_loss": loss_ema, "final_train_psnr": psnr_ema,
         "scene_scale": sscale,
+        "nonfinite_grad_steps": nonfinite["steps"], "nonfinite_grad_gaussians": nonfinite["gaussians"],
     }
     save_checkpoint(paths["model"], rc.iterations, params, optimizers, state,
                     dict(extra_base, summary=summary, train_seconds=train_seconds, occluders=_tensors(occ)))
@@ -433,12 +449,53 @@ def _occluders_from(t: dict | None, device) -> torch.nn.ParameterDict | None:
     return torch.nn.ParameterDict({k: torch.nn.Parameter(v.clone().to(device)) for k, v in t.items()})
 
 
-def _diverged(paths: dict, last_good: int, exc: Exception | None):
-    what = f" ({exc})" if exc else ""
+# A step whose gradients have NaN/inf entries has those Gaussians' gradients zeroed (Adam's update of them is
+# then its momentum alone, finite); training stops as diverged only when this lasts this many steps in a row.
+_MAX_NONFINITE_RUN = 20
+
+
+def _drop_nonfinite_grads(groups, means2d) -> tuple[int, list[str]]:
+    """Zero every gradient of the Gaussians that have a NaN/inf gradient entry; returns their number and
+    the parameters it was found in.
+
+    ``groups`` are ``(label, ParameterDict or None)`` in the render's order (the model, then the occluders), whose
+    rows are Gaussians; ``means2d`` is the render's screen-space means (its gradient feeds the density
+    strategy, so it is cleaned too). One NaN in a pixel's gradient reaches every Gaussian drawn there, and a
+    single such step used to leave NaN means after Adam's update, which stopped the run (``training
+    diverged``) although the loss was finite. A finite sum of a gradient means it has no NaN/inf: the
+    per-entry check runs only when the sum is not finite.
+    """
+    g2 = getattr(means2d, "grad", None)
+    total, where, offset = 0, [], 0
+    for label, p in groups:
+        if p is None:
+            continue
+        n = p["means"].shape[0]
+        grads = [(k, t.grad) for k, t in p.items() if t.grad is not None]
+        if g2 is not None and g2.shape[0] >= offset + n:
+            grads.append(("means2d", g2[offset:offset + n]))
+        bad = None
+        for k, g in grads:
+            if bool(torch.isfinite(g.sum())):
+                continue
+            rows = ~torch.isfinite(g).reshape(n, -1).all(dim=1)
+            if bool(rows.any()):
+                bad = rows if bad is None else bad | rows
+                where.append(label + k)
+        if bad is not None:
+            for _, g in grads:
+                g[bad] = 0.0
+            total += int(bad.sum())
+        offset += n
+    return total, where
+
+
+def _diverged(paths: dict, last_good: int, exc: Exception | None, what: str = "the loss became NaN/inf"):
+    what += f" ({exc})" if exc else ""
     kept = f"the last good checkpoint (step {last_good}) is kept in {paths['ckpt']}" if paths["ckpt"].is_file() else \
         "no checkpoint was written yet"
     raise PlantsplatError(
-        f"training diverged: the loss became NaN/inf{what}; {kept}; lower the learning rates or check the "
+        f"training diverged: {what}; {kept}; lower the learning rates or check the "
         "frames and poses, then re-run (or pass --force to start again)"
     )
 
