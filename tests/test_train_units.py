@@ -69,6 +69,32 @@ def test_ssim_gradient_flows():
     assert x.grad is not None and torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
 
 
+
+def test_fused_ssim_moment_gradients_where_the_covariance_cancels_c2():
+    """The fused kernel's derivatives of SSIM by its local moments stay finite, and equal float64 central
+    differences, also where 2 cov(x, y) + C2 is exactly zero (the SSIM value is then 0). Written with
+    1 / (2 cov + C2) they were 0 * inf = NaN there while the loss was finite: NaN reached every Gaussian
+    drawn near that pixel."""
+    from plantsplat.raster.ssim import _C1, _C2, _ssim_row_grad
+
+    # columns: moments mu_x, mu_y, E[x^2], E[y^2], E[x y]; the first has 2 (E[xy] - mu_x mu_y) + C2 == 0 exactly
+    mu = np.array([[0.0, 0.3, 0.7], [0.0, 0.5, 0.2], [0.01, 0.12, 0.52], [0.02, 0.3, 0.06], [-_C2 / 2, 0.14, 0.13]],
+                  np.float32)
+    d = np.zeros((3, 3), np.float32)
+    _ssim_row_grad(mu, d[0], d[1], d[2])
+    assert np.isfinite(d).all()
+
+    def ssim64(m):
+        mx, my, xx, yy, xy = m
+        return (2 * mx * my + _C1) * (2 * (xy - mx * my) + _C2) / ((mx**2 + my**2 + _C1) * (xx + yy - mx**2 - my**2 + _C2))
+
+    m64 = mu.astype(np.float64)
+    for row, k in ((0, 0), (1, 2), (2, 4)):  # d0: by mu_x, d1: by E[x^2], d2: by E[x y]
+        e = np.zeros_like(m64)
+        e[k] = 1e-6
+        num = (ssim64(m64 + e) - ssim64(m64 - e)) / 2e-6
+        np.testing.assert_allclose(d[row], num, rtol=2e-3, atol=2e-3)
+
 @pytest.mark.parametrize("h,w,lam", [(83, 61, 0.2), (12, 200, 0.2), (1, 1, 0.5), (40, 7, 1.0)])
 def test_training_loss_is_fused_and_matches_torch(h, w, lam):
     """The training loss (trainer.photometric_loss: the fused numba kernels on the CPU) gives the same

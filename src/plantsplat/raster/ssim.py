@@ -188,15 +188,16 @@ def _ssim_row_grad(mu, d0, d1, d2):  # pragma: no cover - numba
     s_row = _F32(0.0)
     for q in range(mu.shape[1]):
         mx, my, a1, a2, b1, b2 = _terms(mu, q)
-        ia1 = _F32(1.0) / a1
-        ia2 = _F32(1.0) / a2
-        ib1 = _F32(1.0) / b1
+        ib1 = _F32(1.0) / b1  # b1 >= C1, b2 >= C2 (up to rounding): never zero
         ib2 = _F32(1.0) / b2
-        s = a1 * a2 * ib1 * ib2
+        ib = ib1 * ib2
+        s = a1 * a2 * ib
         s_row += s
-        d0[q] = _F32(2.0) * s * (my * (ia1 - ia2) + mx * (ib2 - ib1))
+        # no division by a1 or a2: a2 = 2 cov(x, y) + C2 is exactly zero where a negative covariance cancels C2,
+        # and the former s / a2 was then 0 * inf = NaN in the gradient of a finite loss
+        d0[q] = _F32(2.0) * (my * (a2 - a1) * ib + mx * s * (ib2 - ib1))
         d1[q] = -s * ib2
-        d2[q] = _F32(2.0) * s * ia2
+        d2[q] = _F32(2.0) * a1 * ib
     return s_row
 
 
