@@ -463,10 +463,10 @@ def _drop_nonfinite_grads(groups, means2d) -> tuple[int, list[str]]:
     strategy, so it is cleaned too). One NaN in a pixel's gradient reaches every Gaussian drawn there, and a
     single such step used to leave NaN means after Adam's update, which stopped the run (``training
     diverged``) although the loss was finite. A finite sum of a gradient means it has no NaN/inf: the
-    per-entry check runs only when the sum is not finite.
+    per-entry check runs only when a sum is not finite, and all sums are read at once (one GPU sync a step).
     """
     g2 = getattr(means2d, "grad", None)
-    total, where, offset = 0, [], 0
+    parts, offset = [], 0
     for label, p in groups:
         if p is None:
             continue
@@ -474,6 +474,13 @@ def _drop_nonfinite_grads(groups, means2d) -> tuple[int, list[str]]:
         grads = [(k, t.grad) for k, t in p.items() if t.grad is not None]
         if g2 is not None and g2.shape[0] >= offset + n:
             grads.append(("means2d", g2[offset:offset + n]))
+        parts.append((label, n, grads))
+        offset += n
+    sums = [g.sum() for _, _, grads in parts for _, g in grads]
+    if not sums or bool(torch.isfinite(torch.stack(sums)).all()):
+        return 0, []
+    total, where = 0, []
+    for label, n, grads in parts:
         bad = None
         for k, g in grads:
             if bool(torch.isfinite(g.sum())):
@@ -486,7 +493,6 @@ def _drop_nonfinite_grads(groups, means2d) -> tuple[int, list[str]]:
             for _, g in grads:
                 g[bad] = 0.0
             total += int(bad.sum())
-        offset += n
     return total, where
 
 
