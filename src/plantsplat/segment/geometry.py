@@ -699,9 +699,12 @@ def fruit_sized(occ: np.ndarray, vs: float, max_cm: float) -> np.ndarray:
     hanging side by side (a truss) make a longer piece, not a thicker one; a box, a pot or a slab of wall of fruit
     colour is thicker or longer.
 
-    Example:
-        >>> fruit_sized(occ, 1.06, 7.0).sum()    # voxels of fruit-sized pieces
-        119
+    Example (a 4 cm blob is kept, a 12 cm rod of fruit colour is not):
+        >>> occ = np.zeros((24, 24, 24), bool)
+        >>> occ[2:6, 2:6, 2:6] = True
+        >>> occ[8:20, 12:14, 12:14] = True
+        >>> int(fruit_sized(occ, 1.0, 5.0).sum())
+        64
     """
     from scipy import ndimage
 
