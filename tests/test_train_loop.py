@@ -234,27 +234,12 @@ def test_nan_loss_stops_and_keeps_checkpoint(synth_capture, tmp_path, monkeypatc
     assert (ws.train_dir / "checkpoint.pt").is_file()
 
 
-
-class _NanPixelGrad:
-    """Identity on a render's colour whose backward puts NaN into the gradient of a 4x4 patch at its centre."""
-
-    @staticmethod
-    def apply(color):
-        import torch
-
-        class F(torch.autograd.Function):
-            @staticmethod
-            def forward(ctx, x):
-                return x.view_as(x)
-
-            @staticmethod
-            def backward(ctx, g):
-                g = g.clone()
-                h, w = g.shape[0] // 2, g.shape[1] // 2
-                g[h - 2:h + 2, w - 2:w + 2] = float("nan")
-                return g
-
-        return F.apply(color)
+def _nan_patch(g):
+    """A gradient hook: NaN in a 4x4 patch at the centre of an image gradient [H, W, 3]."""
+    g = g.clone()
+    h, w = g.shape[0] // 2, g.shape[1] // 2
+    g[h - 2:h + 2, w - 2:w + 2] = float("nan")
+    return g
 
 
 def _poison_grads(monkeypatch, trainer, steps):
@@ -265,7 +250,7 @@ def _poison_grads(monkeypatch, trainer, steps):
     def poisoned(*a, **k):
         out = real_render(*a, **k)
         if calls["n"] in steps:
-            out.color = _NanPixelGrad.apply(out.color)
+            out.color.register_hook(_nan_patch)
         calls["n"] += 1
         return out
 
@@ -298,6 +283,7 @@ def test_nan_gradients_that_persist_stop_the_run(synth_capture, tmp_path, monkey
     cfg = trainer.TrainConfig(iterations=10, max_resolution=64, num_downscales=0, evaluate=False, init_points=2000)
     with pytest.raises(PlantsplatError, match="gradients were NaN/inf 3 steps in a row"):
         trainer.train_workspace(ws, cfg)
+
 
 def test_bad_inputs(synth_capture, tmp_path):
     from plantsplat.train.trainer import TrainConfig, train_workspace

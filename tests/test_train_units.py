@@ -69,7 +69,6 @@ def test_ssim_gradient_flows():
     assert x.grad is not None and torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
 
 
-
 def test_fused_ssim_moment_gradients_where_the_covariance_cancels_c2():
     """The fused kernel's derivatives of SSIM by its local moments stay finite, and equal float64 central
     differences, also where 2 cov(x, y) + C2 is exactly zero (the SSIM value is then 0). Written with
@@ -94,6 +93,7 @@ def test_fused_ssim_moment_gradients_where_the_covariance_cancels_c2():
         e[k] = 1e-6
         num = (ssim64(m64 + e) - ssim64(m64 - e)) / 2e-6
         np.testing.assert_allclose(d[row], num, rtol=2e-3, atol=2e-3)
+
 
 @pytest.mark.parametrize("h,w,lam", [(83, 61, 0.2), (12, 200, 0.2), (1, 1, 0.5), (40, 7, 1.0)])
 def test_training_loss_is_fused_and_matches_torch(h, w, lam):
@@ -290,7 +290,6 @@ def test_strategy_grow_prune_keeps_optimizer_in_sync():
         torch.testing.assert_close(params[k].detach(), ref[k].detach(), atol=1e-6, rtol=1e-5)
 
 
-
 def test_nonfinite_gradients_are_zeroed_per_gaussian():
     """Only the Gaussians (model or occluder) with a NaN/inf entry in any gradient lose their gradients, all of
     them; the screen-space means' gradient rows follow the render's order (model first, occluders after)."""
@@ -319,6 +318,7 @@ def test_nonfinite_gradients_are_zeroed_per_gaussian():
     assert torch.equal(occ["means"].grad[1], torch.zeros(3)) and bool(occ["means"].grad[0].ne(0).all())
     assert torch.equal(means2d.grad[[1, 4, 7]], torch.zeros(3, 2)) and bool(torch.isfinite(means2d.grad).all())
     assert _drop_nonfinite_grads([("", model), ("occluder ", None)], means2d) == (0, [])
+
 
 def test_strategy_opacity_reset():
     from plantsplat.train.model import make_optimizers

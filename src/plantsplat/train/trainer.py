@@ -477,13 +477,17 @@ def _drop_nonfinite_grads(groups, means2d) -> tuple[int, list[str]]:
         parts.append((label, n, grads))
         offset += n
     sums = [g.sum() for _, _, grads in parts for _, g in grads]
-    if not sums or bool(torch.isfinite(torch.stack(sums)).all()):
+    if not sums:
         return 0, []
+    finite = torch.isfinite(torch.stack(sums))
+    if bool(finite.all()):
+        return 0, []
+    finite = iter(finite.tolist())  # in the order of the sums
     total, where = 0, []
     for label, n, grads in parts:
         bad = None
         for k, g in grads:
-            if bool(torch.isfinite(g.sum())):
+            if next(finite):
                 continue
             rows = ~torch.isfinite(g).reshape(n, -1).all(dim=1)
             if bool(rows.any()):
