@@ -80,7 +80,7 @@ def test_fused_ssim_moment_gradients_where_the_covariance_cancels_c2():
     mu = np.array([[0.0, 0.3, 0.7], [0.0, 0.5, 0.2], [0.01, 0.12, 0.52], [0.02, 0.3, 0.06], [-_C2 / 2, 0.14, 0.13]],
                   np.float32)
     d = np.zeros((3, 3), np.float32)
-    _ssim_row_grad(mu, d[0], d[1], d[2])
+    _ssim_row_grad(mu[0], mu[1], mu[2], mu[3], mu[4], d[0], d[1], d[2])
     assert np.isfinite(d).all()
 
     def ssim64(m):
@@ -169,6 +169,84 @@ def test_fused_loss_composites_a_cropped_target_like_torch(h, w):
     img_req = img.clone().requires_grad_(True)
     loss_t, _ = trainer.photometric_loss(color, alpha, bg, img_req, 0.2, ga)
     assert abs(float(loss_t) - l1) < 1e-5
+
+
+@pytest.mark.parametrize("case", ["corner", "two_islands", "edge_columns", "empty", "one_pixel"])
+def test_fused_loss_skips_windows_where_render_and_target_agree(case):
+    """Object mode's crops are mostly background over background: render and target both exactly the background
+    colour. The fused loss skips the SSIM windows where they agree everywhere (SSIM exactly 1, no gradient); value
+    and gradients must still equal the PyTorch composition's, with the object in a corner, as two islands, on the
+    crop's left and right edges, absent, or one pixel wide."""
+    from plantsplat.raster import ssim as S
+    from plantsplat.train import trainer
+    from plantsplat.train.metrics import ssim as ssim_torch
+
+    h, w = 70, 90
+    g = torch.Generator().manual_seed(len(case))
+    obj = torch.zeros(h, w, dtype=torch.bool)
+    if case == "corner":
+        obj[:9, :12] = True
+    elif case == "two_islands":
+        obj[20:30, 10:25] = True
+        obj[45:60, 60:80] = True
+    elif case == "edge_columns":
+        obj[30:40, :3] = True
+        obj[5:15, -2:] = True
+    elif case == "one_pixel":
+        obj[35, 44] = True
+    bg = torch.rand(3, generator=g)
+    ga = (obj[..., None] & (torch.rand(h, w, 1, generator=g) > 0.2)).float()  # the target's mask
+    frame = torch.rand(h, w, 3, generator=g)
+    near = torch.nn.functional.max_pool2d(obj[None, None].float(), 7, 1, 3)[0, 0, ..., None] > 0  # render spills over
+    alpha = torch.rand(h, w, 1, generator=g) * near
+    color = torch.rand(h, w, 3, generator=g) * alpha
+    target = frame * ga + (1 - ga) * bg
+
+    def torch_loss(c, al):  # in float64: the reference's own rounding is then far below the tolerance
+        pred = c + (1 - al) * bg.double()
+        t = target.double()
+        return 0.8 * (pred - t).abs().mean() + 0.2 * (1 - ssim_torch(pred, t)), ((pred - t) ** 2).mean()
+
+    out = []
+    for fused in (True, False):
+        c = (color if fused else color.double()).clone().requires_grad_(True)
+        al = (alpha if fused else alpha.double()).clone().requires_grad_(True)
+        loss, mse = trainer.photometric_loss(c, al, bg, frame, 0.2, ga) if fused else torch_loss(c, al)
+        (3.0 * loss).backward()
+        out.append((float(loss), float(mse), c.grad.double(), al.grad.double()))
+    (lf, mf, cf, af), (lr, mr, cr, ar) = out
+    assert abs(lf - lr) < 1e-6 and abs(mf - mr) < 1e-6
+    for a, b in ((cf, cr), (af, ar)):
+        assert float((a - b).abs().max()) <= 1e-4 * float(b.abs().max()) + 1e-10, float((a - b).abs().max())
+        # no gradient the skipped windows would have given is lost: where the fused one is exactly zero, so is the
+        # float64 reference's (up to its rounding); a range one pixel short leaves ~1e-9 out at its edge
+        assert float(b[a == 0].abs().max()) < 1e-13 if bool((a == 0).any()) else True
+    # the windows computed are exactly those holding a pixel where render and target differ
+    x, y, _, (_, rng), _ = S._run_fwd(color, alpha[..., 0].numpy().copy(), bg.numpy(), frame, True, ga)
+    import cv2
+
+    differs = (x.reshape(h, w, 3) != y.reshape(h, w, 3)).any(axis=2).astype(np.uint8)
+    windows = cv2.dilate(differs, np.ones((11, 11), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    for i in range(h):
+        cols = np.flatnonzero(windows[i])
+        assert tuple(rng[i]) == ((cols[0], cols[-1] + 1) if len(cols) else (0, 0)), (i, rng[i])
+    # the backward pass reads no derivative map the forward pass left unwritten: with the maps' memory full of NaN
+    # beforehand, the gradient is the same
+    n = 3 * w
+    maps = np.full((3, h, n), np.nan, np.float32)
+    xs, ys = np.empty((h, n), np.float32), np.empty((h, n), np.float32)
+    live, rng2 = np.empty((h, 2), np.int64), np.empty((h, 2), np.int64)
+    g6 = S._window()[: S._R + 1].copy()
+    S._fwd(color.numpy().reshape(h, n), alpha[..., 0].numpy().copy(), bg.numpy(), ys, g6, True, xs, maps,
+           np.zeros((h, 3), np.float32), frame.numpy().reshape(h, n), ga.numpy().reshape(h, w), live, rng2)
+    dx = np.empty((h, n), np.float32)
+    S._bwd(maps, xs, ys, bg.numpy(), g6, np.float32(1.0), np.float32(0.0), dx, np.empty((0, 0), np.float32), rng2)
+    assert np.isfinite(dx).all() and (rng2 == rng).all()
+    computed = int((rng[:, 1] - rng[:, 0]).sum())
+    if case == "empty":
+        assert computed == 0 and lf == 0.0 and float(cf.abs().max()) == 0.0
+    else:
+        assert 0 < computed < 0.6 * h * w
 
 
 def test_fused_loss_rejects_bad_shapes():

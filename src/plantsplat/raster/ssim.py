@@ -58,13 +58,18 @@ _BLOCK = 32  # output rows per parallel task
 
 
 @njit(inline="always")
-def _rows11(a, i, zero):  # pragma: no cover - numba
-    """Rows i - 5 .. i + 5 of a (the zero row where outside the image: zero padding)."""
+def _rows11(a, i, zero, c0, c1):  # pragma: no cover - numba
+    """Columns c0..c1 of rows i - 5 .. i + 5 of a (the zero row where outside the image: zero padding).
+
+    Slices, so that the loops over them start at 0: numba wraps negative indices, and LLVM vectorises a loop
+    only where it can tell the index is not negative (loops from a computed start made the passes 6-9x slower)."""
     h = a.shape[0]
-    return (a[i - 5] if i >= 5 else zero, a[i - 4] if i >= 4 else zero, a[i - 3] if i >= 3 else zero,
-            a[i - 2] if i >= 2 else zero, a[i - 1] if i >= 1 else zero, a[i],
-            a[i + 1] if i + 1 < h else zero, a[i + 2] if i + 2 < h else zero, a[i + 3] if i + 3 < h else zero,
-            a[i + 4] if i + 4 < h else zero, a[i + 5] if i + 5 < h else zero)
+    z = zero[: c1 - c0]
+    return (a[i - 5, c0:c1] if i >= 5 else z, a[i - 4, c0:c1] if i >= 4 else z, a[i - 3, c0:c1] if i >= 3 else z,
+            a[i - 2, c0:c1] if i >= 2 else z, a[i - 1, c0:c1] if i >= 1 else z, a[i, c0:c1],
+            a[i + 1, c0:c1] if i + 1 < h else z, a[i + 2, c0:c1] if i + 2 < h else z,
+            a[i + 3, c0:c1] if i + 3 < h else z, a[i + 4, c0:c1] if i + 4 < h else z,
+            a[i + 5, c0:c1] if i + 5 < h else z)
 
 
 @njit(inline="always", fastmath=_FM)
@@ -90,7 +95,7 @@ def _hblur(p, o, g):  # pragma: no cover - numba
 
 
 @njit(parallel=True, fastmath=_FM, cache=True, error_model="numpy")
-def _fwd(col, alpha, bg, y, g, want_grad, x, dmaps, sums, img, img_alpha):  # pragma: no cover - numba
+def _fwd(col, alpha, bg, y, g, want_grad, x, dmaps, sums, img, img_alpha, live, rng):  # pragma: no cover - numba
     """SSIM of x = col + (1 - alpha) bg (written to x) against y, interleaved [H, W*3] (alpha
     [H, W], g the window's six distinct taps): sums[i] = (row i's SSIM sum, |x - y| sum,
     (x - y)^2 sum); if want_grad, dmaps[0..2, i] = dS/dmu_x, dS/dE[x^2], dS/dE[x y] per pixel and
@@ -99,7 +104,14 @@ def _fwd(col, alpha, bg, y, g, want_grad, x, dmaps, sums, img, img_alpha):  # pr
 
     Per output row: the five local moments are blurred vertically from the 11 input rows around it
     (which stay in cache from one row to the next), then horizontally, then go straight into the
-    SSIM formula, so no moment maps are written."""
+    SSIM formula, so no moment maps are written.
+
+    Only the windows holding a pixel where x != y are computed: ``live[i]`` gets the first and last such
+    pixel of row i (``(0, -1)`` if none) and ``rng[i]`` the pixel range ``[a, b)`` of output windows of
+    row i that hold one. Where x == y over a whole window, SSIM is exactly 1 and the window adds nothing
+    to any gradient (its dS/dmu_x is 0, and 2 x dS/dE[x^2] + y dS/dE[x y] = 2 (y - x) / b2 = 0 at each of
+    its pixels): those windows count 1 each and get zero derivative maps. Object mode's crops are
+    mostly such windows, background over background."""
     h, n = y.shape
     for row in prange(h):
         xr = x[row]
@@ -126,20 +138,53 @@ def _fwd(col, alpha, bg, y, g, want_grad, x, dmaps, sums, img, img_alpha):  # pr
             s_sq += d * d
         sums[row, 1] = s_abs
         sums[row, 2] = s_sq
+        # the first and last pixel where x != y (scans that stop there: the loop above stays vectorised)
+        first = n
+        for q in range(n):
+            if xr[q] != yr[q]:
+                first = q
+                break
+        last = -1
+        for q in range(n - 1, first - 1, -1):
+            if xr[q] != yr[q]:
+                last = q
+                break
+        live[row, 0] = first // _C if last >= 0 else 0
+        live[row, 1] = last // _C if last >= 0 else -1
+    w = n // _C
+    _window_ranges(live, rng, w)
     nblk = (h + _BLOCK - 1) // _BLOCK
     for b in prange(nblk):
         zero = np.zeros(n, np.float32)
         pad = np.zeros((5, n + 2 * _R * _C), np.float32)  # borders stay zero (zero padding)
         mu = np.empty((5, n), np.float32)
         for i in range(b * _BLOCK, min(h, (b + 1) * _BLOCK)):
-            xs = _rows11(x, i, zero)
-            ys = _rows11(y, i, zero)
-            p0 = pad[0, _R * _C:]
-            p1 = pad[1, _R * _C:]
-            p2 = pad[2, _R * _C:]
-            p3 = pad[3, _R * _C:]
-            p4 = pad[4, _R * _C:]
-            for q in range(n):
+            q0 = rng[i, 0] * _C
+            q1 = rng[i, 1] * _C
+            if want_grad:
+                # zeros where :func:`_bwd` reads this row outside its own windows: within 2 window radii of the
+                # windows computed in the rows within 2 window radii of it
+                z0, z1 = _reach(rng, i, 2 * _R, w)
+                for m in range(3):
+                    dm = dmaps[m, i]
+                    for q in range(z0 * _C, min(q0, z1 * _C)):
+                        dm[q] = _F32(0.0)
+                    for q in range(max(q1, z0 * _C), z1 * _C):
+                        dm[q] = _F32(0.0)
+            if q1 <= q0:
+                sums[i, 0] = _F32(n)
+                continue
+            # the vertical blur where the windows of q0..q1 read it (pad's entries elsewhere are stale or zero)
+            c0 = max(0, q0 - _R * _C)
+            c1 = min(n, q1 + _R * _C)
+            xs = _rows11(x, i, zero, c0, c1)
+            ys = _rows11(y, i, zero, c0, c1)
+            p0 = pad[0, _R * _C + c0:_R * _C + c1]
+            p1 = pad[1, _R * _C + c0:_R * _C + c1]
+            p2 = pad[2, _R * _C + c0:_R * _C + c1]
+            p3 = pad[3, _R * _C + c0:_R * _C + c1]
+            p4 = pad[4, _R * _C + c0:_R * _C + c1]
+            for q in range(c1 - c0):
                 a0, a1, a2, a3, a4, a5 = xs[0][q], xs[1][q], xs[2][q], xs[3][q], xs[4][q], xs[5][q]
                 a6, a7, a8, a9, a10 = xs[6][q], xs[7][q], xs[8][q], xs[9][q], xs[10][q]
                 v0, v1, v2, v3, v4, v5 = ys[0][q], ys[1][q], ys[2][q], ys[3][q], ys[4][q], ys[5][q]
@@ -152,42 +197,80 @@ def _fwd(col, alpha, bg, y, g, want_grad, x, dmaps, sums, img, img_alpha):  # pr
                              v9 * v9, v10 * v10)
                 p4[q] = _sym(g, a0 * v0, a1 * v1, a2 * v2, a3 * v3, a4 * v4, a5 * v5, a6 * v6, a7 * v7, a8 * v8,
                              a9 * v9, a10 * v10)
+            L = q1 - q0
             for m in range(5):
-                _hblur(pad[m], mu[m], g)
+                _hblur(pad[m, q0:q1 + 2 * _R * _C], mu[m, :L], g)
             if want_grad:
-                sums[i, 0] = _ssim_row_grad(mu, dmaps[0, i], dmaps[1, i], dmaps[2, i])
+                sums[i, 0] = _ssim_row_grad(mu[0, :L], mu[1, :L], mu[2, :L], mu[3, :L], mu[4, :L], dmaps[0, i, q0:q1],
+                                            dmaps[1, i, q0:q1], dmaps[2, i, q0:q1]) + _F32(n - L)
             else:
-                sums[i, 0] = _ssim_row(mu)
+                sums[i, 0] = _ssim_row(mu[0, :L], mu[1, :L], mu[2, :L], mu[3, :L], mu[4, :L]) + _F32(n - L)
+
+
+@njit(cache=True)
+def _window_ranges(live, rng, w):  # pragma: no cover - numba
+    """rng[i] = the pixel range [a, b) of the 11x11 windows centred in row i that hold a pixel of ``live`` (the
+    first and last pixel per row where x != y, (0, -1) for none); (0, 0) when there is none."""
+    h = live.shape[0]
+    for i in range(h):
+        lo = w
+        hi = -1
+        for r in range(max(0, i - _R), min(h, i + _R + 1)):
+            if live[r, 1] >= live[r, 0]:
+                lo = min(lo, live[r, 0])
+                hi = max(hi, live[r, 1])
+        if hi < lo:
+            rng[i, 0] = 0
+            rng[i, 1] = 0
+        else:
+            rng[i, 0] = max(0, lo - _R)
+            rng[i, 1] = min(w, hi + _R + 1)
+
+
+@njit(inline="always")
+def _reach(rng, i, k, w):  # pragma: no cover - numba
+    """The pixel range within ``k`` px of the windows ``rng`` computed in rows i - k .. i + k ((0, 0) if none)."""
+    h = rng.shape[0]
+    lo = w
+    hi = 0
+    for r in range(max(0, i - k), min(h, i + k + 1)):
+        if rng[r, 1] > rng[r, 0]:
+            lo = min(lo, rng[r, 0])
+            hi = max(hi, rng[r, 1])
+    if hi <= lo:
+        return 0, 0
+    return max(0, lo - k), min(w, hi + k)
 
 
 @njit(inline="always", fastmath=_FM)
-def _terms(mu, q):  # pragma: no cover - numba
-    """mu_x, mu_y and the four factors of SSIM = (a1 a2) / (b1 b2) at column q of the blurred moments."""
-    mx = mu[0, q]
-    my = mu[1, q]
+def _terms(m0, m1, m2, m3, m4, q):  # pragma: no cover - numba
+    """mu_x, mu_y and the four factors of SSIM = (a1 a2) / (b1 b2) at column q of the blurred moments m0..m4
+    (x, y, x^2, y^2, x y)."""
+    mx = m0[q]
+    my = m1[q]
     a1 = _F32(2.0) * mx * my + _C1
-    a2 = _F32(2.0) * (mu[4, q] - mx * my) + _C2
+    a2 = _F32(2.0) * (m4[q] - mx * my) + _C2
     b1 = mx * mx + my * my + _C1
-    b2 = mu[2, q] + mu[3, q] - mx * mx - my * my + _C2
+    b2 = m2[q] + m3[q] - mx * mx - my * my + _C2
     return mx, my, a1, a2, b1, b2
 
 
 @njit(inline="always", fastmath=_FM)
-def _ssim_row(mu):  # pragma: no cover - numba
-    """Sum of the SSIM map over one row from its blurred moments mu[0..4]."""
+def _ssim_row(m0, m1, m2, m3, m4):  # pragma: no cover - numba
+    """Sum of the SSIM map over (part of) one row from its blurred moments m0..m4."""
     s_row = _F32(0.0)
-    for q in range(mu.shape[1]):
-        _, _, a1, a2, b1, b2 = _terms(mu, q)
+    for q in range(m0.shape[0]):
+        _, _, a1, a2, b1, b2 = _terms(m0, m1, m2, m3, m4, q)
         s_row += (a1 * a2) / (b1 * b2)
     return s_row
 
 
 @njit(inline="always", fastmath=_FM)
-def _ssim_row_grad(mu, d0, d1, d2):  # pragma: no cover - numba
+def _ssim_row_grad(m0, m1, m2, m3, m4, d0, d1, d2):  # pragma: no cover - numba
     """As :func:`_ssim_row`, also writing dS/dmu_x, dS/dE[x^2], dS/dE[x y] into d0, d1, d2."""
     s_row = _F32(0.0)
-    for q in range(mu.shape[1]):
-        mx, my, a1, a2, b1, b2 = _terms(mu, q)
+    for q in range(m0.shape[0]):
+        mx, my, a1, a2, b1, b2 = _terms(m0, m1, m2, m3, m4, q)
         ib1 = _F32(1.0) / b1  # b1 >= C1, b2 >= C2 (up to rounding): never zero
         ib2 = _F32(1.0) / b2
         ib = ib1 * ib2
@@ -202,11 +285,13 @@ def _ssim_row_grad(mu, d0, d1, d2):  # pragma: no cover - numba
 
 
 @njit(parallel=True, fastmath=_FM, cache=True, error_model="numpy")
-def _bwd(dmaps, x, y, bg, g, s_ssim, s_l1, dx, dalpha):  # pragma: no cover - numba
+def _bwd(dmaps, x, y, bg, g, s_ssim, s_l1, dx, dalpha, rng):  # pragma: no cover - numba
     """dx = s_ssim (G * dmaps[0] + 2 x (G * dmaps[1]) + y (G * dmaps[2])) + s_l1 sign(x - y) and, when
     dalpha has rows, dalpha = -sum_c dx_c bg_c (x = col + (1 - alpha) bg). Blurred as :func:`_fwd`:
-    vertically from the 11 rows around each output row, then horizontally."""
+    vertically from the 11 rows around each output row, then horizontally. ``rng``: :func:`_fwd`'s ranges of
+    the windows whose derivative maps are not zero; the blurred maps are computed only within reach of them."""
     h, n = y.shape
+    w = n // _C
     want_alpha = dalpha.shape[0] > 0
     nblk = (h + _BLOCK - 1) // _BLOCK
     for b in prange(nblk):
@@ -214,19 +299,30 @@ def _bwd(dmaps, x, y, bg, g, s_ssim, s_l1, dx, dalpha):  # pragma: no cover - nu
         pad = np.zeros((3, n + 2 * _R * _C), np.float32)
         bd = np.empty((3, n), np.float32)
         for i in range(b * _BLOCK, min(h, (b + 1) * _BLOCK)):
-            for m in range(3):
-                rs = _rows11(dmaps[m], i, zero)
-                pm = pad[m, _R * _C:]
-                for q in range(n):
-                    pm[q] = _vblur(rs, q, g)
-                _hblur(pad[m], bd[m], g)
+            a, z = _reach(rng, i, _R, w)  # the pixels within a window radius of this row's nonzero maps
+            q0 = a * _C
+            q1 = z * _C
+            if q1 > q0:
+                c0 = max(0, q0 - _R * _C)
+                c1 = min(n, q1 + _R * _C)
+                for m in range(3):
+                    rs = _rows11(dmaps[m], i, zero, c0, c1)
+                    pm = pad[m, _R * _C + c0:_R * _C + c1]
+                    for q in range(c1 - c0):
+                        pm[q] = _vblur(rs, q, g)
+                    _hblur(pad[m, q0:q1 + 2 * _R * _C], bd[m, q0:q1], g)
             xr = x[i]
             yr = y[i]
             o = dx[i]
             for q in range(n):
                 d = xr[q] - yr[q]
                 sg = _F32(1.0) if d > 0 else (_F32(-1.0) if d < 0 else _F32(0.0))
-                o[q] = s_ssim * (bd[0, q] + _F32(2.0) * xr[q] * bd[1, q] + yr[q] * bd[2, q]) + s_l1 * sg
+                o[q] = s_l1 * sg
+            if q1 > q0:
+                os_, xs_, ys_ = o[q0:q1], xr[q0:q1], yr[q0:q1]
+                b0, b1, b2 = bd[0, q0:q1], bd[1, q0:q1], bd[2, q0:q1]
+                for q in range(q1 - q0):
+                    os_[q] += s_ssim * (b0[q] + _F32(2.0) * xs_[q] * b1[q] + ys_[q] * b2[q])
             if want_alpha:
                 da = dalpha[i]
                 for p in range(da.shape[0]):
@@ -267,9 +363,11 @@ def _run_fwd(col: Tensor, alpha: np.ndarray, bg: np.ndarray, gt: Tensor, want_gr
     x = np.empty_like(y)
     dmaps = np.empty((3, h, n) if want_grad else (3, 0, 0), np.float32)
     sums = np.zeros((h, 3), np.float32)
-    _fwd(c, alpha, bg, y, g, want_grad, x, dmaps, sums, img, ga)
+    live = np.empty((h, 2), np.int64)
+    rng = np.empty((h, 2), np.int64)
+    _fwd(c, alpha, bg, y, g, want_grad, x, dmaps, sums, img, ga, live, rng)
     tot = sums.astype(np.float64).sum(axis=0) / (h * n)  # mean SSIM, mean |x - y|, mean (x - y)^2
-    return x, y, g, dmaps, tot
+    return x, y, g, (dmaps, rng), tot
 
 
 _NO_ALPHA = np.empty((0, 0), np.float32)
@@ -287,10 +385,10 @@ class _SSIMCPU(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_out):
-        x, y, g, dmaps, shape = ctx.saved
+        x, y, g, (dmaps, rng), shape = ctx.saved
         h, n = x.shape
         out = np.empty_like(x)
-        _bwd(dmaps, x, y, np.zeros(_C, np.float32), g, _F32(float(g_out) / (h * n)), _F32(0.0), out, _NO_ALPHA)
+        _bwd(dmaps, x, y, np.zeros(_C, np.float32), g, _F32(float(g_out) / (h * n)), _F32(0.0), out, _NO_ALPHA, rng)
         return torch.from_numpy(out).view(shape).to(g_out.dtype), None
 
 
@@ -309,12 +407,12 @@ class _LossCPU(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_loss, g_mse):
-        x, b, y, g, dmaps, lam, cshape, ashape = ctx.saved
+        x, b, y, g, (dmaps, rng), lam, cshape, ashape = ctx.saved
         h, n = y.shape
         gl = float(g_loss) / (h * n)
         dcol = np.empty_like(x)
         dalpha = np.empty((ashape[0], ashape[1]), np.float32) if ctx.needs_input_grad[1] else _NO_ALPHA
-        _bwd(dmaps, x, y, b, g, _F32(-lam * gl), _F32((1.0 - lam) * gl), dcol, dalpha)
+        _bwd(dmaps, x, y, b, g, _F32(-lam * gl), _F32((1.0 - lam) * gl), dcol, dalpha, rng)
         d_col = torch.from_numpy(dcol).view(cshape).to(g_loss.dtype)
         d_alpha = torch.from_numpy(dalpha).view(ashape).to(g_loss.dtype) if ctx.needs_input_grad[1] else None
         return d_col, d_alpha, None, None, None, None
