@@ -106,9 +106,9 @@ def _fwd(col, alpha, bg, y, g, want_grad, x, dmaps, sums, img, img_alpha, live, 
     (which stay in cache from one row to the next), then horizontally, then go straight into the
     SSIM formula, so no moment maps are written.
 
-    Only the windows holding a pixel where x != y are computed: ``live[i]`` gets the first and last such
-    pixel of row i (``(0, -1)`` if none) and ``rng[i]`` the pixel range ``[a, b)`` of output windows of
-    row i that hold one. Where x == y over a whole window, SSIM is exactly 1 and the window adds nothing
+    Only the windows holding a pixel where x != y are computed: ``live[i]`` gets the pixel range ``[a, b)``
+    from the first to the last such pixel of row i (``(0, 0)`` if none) and ``rng[i]`` the pixel range of
+    output windows of row i that hold one. Where x == y over a whole window, SSIM is exactly 1 and the window adds nothing
     to any gradient (its dS/dmu_x is 0, and 2 x dS/dE[x^2] + y dS/dE[x y] = 2 (y - x) / b2 = 0 at each of
     its pixels): those windows count 1 each and get zero derivative maps. Object mode's crops are
     mostly such windows, background over background."""
@@ -150,9 +150,12 @@ def _fwd(col, alpha, bg, y, g, want_grad, x, dmaps, sums, img, img_alpha, live, 
                 last = q
                 break
         live[row, 0] = first // _C if last >= 0 else 0
-        live[row, 1] = last // _C if last >= 0 else -1
+        live[row, 1] = last // _C + 1 if last >= 0 else 0
     w = n // _C
-    _window_ranges(live, rng, w)
+    for i in range(h):  # the windows (radius _R) that hold a live pixel of rows i - _R .. i + _R
+        a, z = _reach(live, i, _R, w)
+        rng[i, 0] = a
+        rng[i, 1] = z
     nblk = (h + _BLOCK - 1) // _BLOCK
     for b in prange(nblk):
         zero = np.zeros(n, np.float32)
@@ -207,29 +210,10 @@ def _fwd(col, alpha, bg, y, g, want_grad, x, dmaps, sums, img, img_alpha, live, 
                 sums[i, 0] = _ssim_row(mu[0, :L], mu[1, :L], mu[2, :L], mu[3, :L], mu[4, :L]) + _F32(n - L)
 
 
-@njit(cache=True)
-def _window_ranges(live, rng, w):  # pragma: no cover - numba
-    """rng[i] = the pixel range [a, b) of the 11x11 windows centred in row i that hold a pixel of ``live`` (the
-    first and last pixel per row where x != y, (0, -1) for none); (0, 0) when there is none."""
-    h = live.shape[0]
-    for i in range(h):
-        lo = w
-        hi = -1
-        for r in range(max(0, i - _R), min(h, i + _R + 1)):
-            if live[r, 1] >= live[r, 0]:
-                lo = min(lo, live[r, 0])
-                hi = max(hi, live[r, 1])
-        if hi < lo:
-            rng[i, 0] = 0
-            rng[i, 1] = 0
-        else:
-            rng[i, 0] = max(0, lo - _R)
-            rng[i, 1] = min(w, hi + _R + 1)
-
-
 @njit(inline="always")
 def _reach(rng, i, k, w):  # pragma: no cover - numba
-    """The pixel range within ``k`` px of the windows ``rng`` computed in rows i - k .. i + k ((0, 0) if none)."""
+    """The pixel range within ``k`` px of the ranges ``rng[r]`` (``[a, b)`` per row, ``(0, 0)`` for none) of rows
+    i - k .. i + k, within ``[0, w)``; ``(0, 0)`` if they are all empty."""
     h = rng.shape[0]
     lo = w
     hi = 0
