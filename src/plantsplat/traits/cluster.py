@@ -119,6 +119,22 @@ def dbscan(
     return labels, float(eps)
 
 
+FAR_CLUSTERS = "large cluster(s) left out as too far from the plant"
+
+
+def far_clusters_reason(excluded: list[dict], plant_points: int) -> str | None:
+    """The warning for clusters left out as far from the plant that hold more than 5 % of ``plant_points``, or None.
+
+    Example:
+        >>> far_clusters_reason([{"label": 3, "points": 900, "reason": "far from the plant"}], 10000)
+        '1 large cluster(s) left out as too far from the plant (900 points): check the plant is not split'
+    """
+    big = [e for e in excluded if e["reason"] == "far from the plant" and e["points"] > 0.05 * plant_points]
+    if not big:
+        return None
+    return f"{len(big)} {FAR_CLUSTERS} ({', '.join(str(e['points']) for e in big)} points): check the plant is not split"
+
+
 @dataclass
 class PlantSelection:
     """Which clusters make up the plant."""
@@ -213,10 +229,7 @@ def select_plant(
         reasons.append(f"plant assembled from {len(chosen)} clusters (more than {max_pieces}): reconstruction is fragmented")
     if main_fraction < 0.25:
         reasons.append(f"largest plant cluster holds only {main_fraction:.0%} of the plant's points: reconstruction is fragmented")
-    big_far = [e for e in excluded if e["reason"] == "far from the plant" and e["points"] > 0.05 * total]
-    if big_far:
-        reasons.append(
-            f"{len(big_far)} large cluster(s) left out as too far from the plant "
-            f"({', '.join(str(e['points']) for e in big_far)} points): check the plant is not split"
-        )
+    far = far_clusters_reason(excluded, total)
+    if far:
+        reasons.append(far)
     return PlantSelection(mask=mask, clusters=chosen, main_fraction=float(main_fraction), excluded=excluded, reasons=reasons)

@@ -97,6 +97,10 @@ class TraitSettings:
     of the plant and no higher than its top: fruit hang on peduncles too thin to be reconstructed."""
     fruit_join_fraction: float = 0.5
     """Share of fruit-coloured points that makes a cluster a hanging fruit."""
+    fruit_join_unripe_cm: float = 7.0
+    """Unripe fruit join the same way: clusters mostly of unripe-fruit colour (pale yellow-green to cream, the
+    segmenter's colour model) no longer than this (cm; the segmenter's ``unripe_fruit_cm``), since walls, boxes and
+    pots share that colour; 0: only red clusters join."""
     trim: float = 0.0005
     """Robust height/widths use the trim .. 1-trim quantiles instead of min .. max (0.0005: the ~0.05 % most
     extreme points on each side are ignored)."""
@@ -208,6 +212,18 @@ def fruit_mask(colors: np.ndarray, s: TraitSettings) -> np.ndarray:
     return red & (hsv[:, 1] >= s.fruit_min_saturation) & (hsv[:, 2] >= s.fruit_min_value)
 
 
+def unripe_fruit_mask(colors: np.ndarray) -> np.ndarray:
+    """[N] bool: points of unripe-fruit colour (pale yellow-green to cream; the segmenter's colour model).
+
+    Example:
+        >>> unripe_fruit_mask(np.array([[190, 196, 140], [40, 160, 50], [200, 20, 30]], np.uint8)).tolist()
+        [True, False, False]
+    """
+    from plantsplat.segment.colour import unripe_colour_mask
+
+    return unripe_colour_mask(np.ascontiguousarray(np.asarray(colors, np.uint8).reshape(1, -1, 3)))[0]
+
+
 def count_fruit(points_cm: np.ndarray, colors: np.ndarray, s: TraitSettings) -> tuple[int, np.ndarray]:
     """Count fruit among the plant's points: ``(count, centres [F, 3])``."""
     import open3d as o3d
@@ -280,7 +296,7 @@ def measure_traits(
         >>> res.quality, res.reasons[0][:26]
         ('failed', 'the point cloud is empty (')
     """
-    from plantsplat.traits.cluster import dbscan, select_plant
+    from plantsplat.traits.cluster import FAR_CLUSTERS, dbscan, far_clusters_reason, select_plant
     from plantsplat.traits.cube_fit import (
         cube_frame_transform,
         decide_up,
@@ -452,7 +468,10 @@ def measure_traits(
                 continue
             m = labels == e["label"]
             q = pts_cm[m]
-            if fruit_mask(cols[m], s).mean() < s.fruit_join_fraction or q[:, 2].max() > top:
+            red = fruit_mask(cols[m], s).mean() >= s.fruit_join_fraction
+            unripe = (s.fruit_join_unripe_cm > 0 and np.max(q.max(0) - q.min(0)) <= s.fruit_join_unripe_cm
+                      and unripe_fruit_mask(cols[m]).mean() >= s.fruit_join_fraction)
+            if not (red or unripe) or q[:, 2].max() > top:
                 continue
             d, _ = tree.query(q, k=1, distance_upper_bound=s.fruit_join_cm)
             if np.isfinite(d).any():
@@ -461,8 +480,12 @@ def measure_traits(
             plant_mask = plant_mask | np.isin(labels, joined)
             sel.excluded[:] = [e for e in sel.excluded if e["label"] not in joined]
             sel.clusters.extend(joined)
-            notes.append(f"{len(joined)} fruit-coloured cluster(s) hanging within {s.fruit_join_cm:g} cm of the plant "
-                         "joined it (fruit on peduncles too thin to reconstruct)")
+            notes.append(f"{len(joined)} fruit-coloured cluster(s) (red or unripe) hanging within {s.fruit_join_cm:g} cm "
+                         "of the plant joined it (fruit on peduncles too thin to reconstruct)")
+            sel.reasons[:] = [r for r in sel.reasons if FAR_CLUSTERS not in r]
+            far = far_clusters_reason(sel.excluded, int(plant_mask.sum()))
+            if far:
+                sel.reasons.append(far)
     reasons.extend(sel.reasons)
     clusters_info.update({"plant_clusters": sel.clusters, "fruit_joined": joined, "plant_main_fraction": sel.main_fraction,
                           "excluded": sel.excluded[:20], "plant_points": int(plant_mask.sum())})
