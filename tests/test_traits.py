@@ -434,9 +434,9 @@ def test_hanging_fruit_without_peduncles_join_the_plant():
 
 
 def test_hanging_unripe_fruit_join_the_plant_but_pale_objects_do_not():
-    """Unripe (cream to pale yellow-green) fruit on unreconstructed peduncles join like red ones; a pale piece longer
-    than a fruit (a beige box or wall) at the same distance does not, and the plant's quality warns only about the
-    large clusters still left out."""
+    """Unripe (cream to pale yellow-green) fruit on unreconstructed peduncles join like red ones, and so does a truss
+    of a ripe and an unripe fruit hanging side by side; a pale piece wider than a fruit (a beige box or wall) at the
+    same distance does not, and the plant's quality warns only about the large clusters still left out."""
     rng = np.random.default_rng(4)
     pts, cols, plant = make_plant_scene(seed=2, floaters=False, separated_leaf=False)
     keep = ~((cols[:, 0] == 80) & (cols[:, 1] == 120))  # drop the peduncles: the scene's fruit hang apart
@@ -444,21 +444,29 @@ def test_hanging_unripe_fruit_join_the_plant_but_pale_objects_do_not():
     crown = np.array([24.0, 3.0, 12.0])
     s = rng.normal(size=(600, 3))
     unripe = crown + [2.5, 0.0, -8.0] + 1.3 * s / np.linalg.norm(s, axis=1, keepdims=True)  # 2.6 cm across
-    box = crown + [0.0, -13.0, -8.0] + rng.uniform([-6, -1, -1], [6, 1, 1], (1200, 3))  # 12 cm long, same colour
+    box = crown + [0.0, -14.0, -8.0] + rng.uniform([-5, -0.3, -4.5], [5, 0.3, 4.5], (3000, 3))  # 10 x 9 cm, same colour
+    s = rng.normal(size=(800, 3))
+    truss = crown + [14.0, 0.0, -5.5] + 1.3 * s / np.linalg.norm(s, axis=1, keepdims=True)
+    truss[400:, 2] -= 2.6  # two fruit one above the other, touching: 5.2 cm long, 2.6 cm thick
     from scipy.spatial import cKDTree
 
-    for b in (unripe, box):
+    for b in (unripe, box, truss):
         assert 4.0 < cKDTree(pts[plant]).query(b)[0].min() < 15.0  # beyond the merge distance, within reach
     cream = lambda n: np.tile(np.array([200, 205, 150], np.uint8), (n, 1))  # noqa: E731
-    P = np.concatenate([pts, unripe, box])
-    C = np.concatenate([cols, cream(len(unripe)), cream(len(box))])
+    # 3/8 red, 3/8 unripe, the rest ripening orange: neither colour alone makes half of it
+    truss_c = np.concatenate([np.tile(np.array([200, 20, 30], np.uint8), (300, 1)), cream(300),
+                              np.tile(np.array([190, 100, 40], np.uint8), (200, 1))])
+    P = np.concatenate([pts, unripe, box, truss])
+    C = np.concatenate([cols, cream(len(unripe)), cream(len(box)), truss_c])
     res = measure_traits(P, C, calibrated=True)
     got = {tuple(p) for p in res.plant_points.round(6)}
-    assert all(tuple(p) in got for p in unripe.round(6)) and not any(tuple(p) in got for p in box.round(6))
-    assert res.traits["fruit_count"] == 3  # the red fruit, all joined; unripe fruit are not counted
+    assert all(tuple(p) in got for p in unripe.round(6)), "unripe"
+    assert all(tuple(p) in got for p in truss.round(6)), "truss"
+    assert not any(tuple(p) in got for p in box.round(6))
     assert [r for r in res.reasons if "too far" in r] == [f"1 large cluster(s) left out as too far from the plant "
                                                           f"({len(box)} points): check the plant is not split"]
     alone = measure_traits(np.concatenate([pts, unripe]), np.concatenate([cols, cream(len(unripe))]), calibrated=True)
     assert alone.quality == "ok", alone.reasons  # every far cluster joined: nothing to warn about
     off = measure_traits(P, C, calibrated=True, settings=TraitSettings(fruit_join_unripe_cm=0))
-    assert not any(tuple(p) in {tuple(q) for q in off.plant_points.round(6)} for p in unripe.round(6))
+    got_off = {tuple(p) for p in off.plant_points.round(6)}
+    assert not any(tuple(p) in got_off for p in unripe.round(6))

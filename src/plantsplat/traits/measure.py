@@ -98,9 +98,10 @@ class TraitSettings:
     fruit_join_fraction: float = 0.5
     """Share of fruit-coloured points that makes a cluster a hanging fruit."""
     fruit_join_unripe_cm: float = 7.0
-    """Unripe fruit join the same way: clusters mostly of unripe-fruit colour (pale yellow-green to cream, the
-    segmenter's colour model) no longer than this (cm; the segmenter's ``unripe_fruit_cm``), since walls, boxes and
-    pots share that colour; 0: only red clusters join."""
+    """Unripe fruit and trusses of ripe and unripe fruit join the same way: clusters mostly of red or unripe-fruit
+    colour (pale yellow-green to cream, the segmenter's colour model) no thicker than this (cm) and no longer than
+    twice it (the segmenter's ``unripe_fruit_cm``), since walls, boxes and pots share the unripe colour; 0: only
+    mostly red clusters join."""
     trim: float = 0.0005
     """Robust height/widths use the trim .. 1-trim quantiles instead of min .. max (0.0005: the ~0.05 % most
     extreme points on each side are ignored)."""
@@ -222,6 +223,22 @@ def unripe_fruit_mask(colors: np.ndarray) -> np.ndarray:
     from plantsplat.segment.colour import unripe_colour_mask
 
     return unripe_colour_mask(np.ascontiguousarray(np.asarray(colors, np.uint8).reshape(1, -1, 3)))[0]
+
+
+def fruit_sized(points: np.ndarray, max_cm: float) -> bool:
+    """Whether a cluster ``[N, 3]`` (cm) is no thicker than a fruit: its middle extent along its principal axes at
+    most ``max_cm`` and its longest at most twice that (fruit hanging side by side make a longer piece, not a
+    thicker one; a slab of wall or a box is wider).
+
+    Example:
+        >>> rng = np.random.default_rng(0)
+        >>> fruit_sized(rng.uniform(-1, 1, (500, 3)) * [1.5, 1.5, 4], 7.0), fruit_sized(rng.uniform(-5, 5, (500, 3)), 7.0)
+        (True, False)
+    """
+    c = np.asarray(points, np.float64) - np.mean(points, axis=0)
+    _, _, vt = np.linalg.svd(c, full_matrices=False)
+    ext = np.sort(np.ptp(c @ vt.T, axis=0))[::-1]  # longest first
+    return bool(ext[1] <= max_cm and ext[0] <= 2.0 * max_cm)
 
 
 def count_fruit(points_cm: np.ndarray, colors: np.ndarray, s: TraitSettings) -> tuple[int, np.ndarray]:
@@ -468,10 +485,11 @@ def measure_traits(
                 continue
             m = labels == e["label"]
             q = pts_cm[m]
-            red = fruit_mask(cols[m], s).mean() >= s.fruit_join_fraction
-            unripe = (s.fruit_join_unripe_cm > 0 and np.max(q.max(0) - q.min(0)) <= s.fruit_join_unripe_cm
-                      and unripe_fruit_mask(cols[m]).mean() >= s.fruit_join_fraction)
-            if not (red or unripe) or q[:, 2].max() > top:
+            red = fruit_mask(cols[m], s)
+            fruit = red.mean() >= s.fruit_join_fraction or (
+                s.fruit_join_unripe_cm > 0 and fruit_sized(q, s.fruit_join_unripe_cm)
+                and (red | unripe_fruit_mask(cols[m])).mean() >= s.fruit_join_fraction)
+            if not fruit or q[:, 2].max() > top:
                 continue
             d, _ = tree.query(q, k=1, distance_upper_bound=s.fruit_join_cm)
             if np.isfinite(d).any():
