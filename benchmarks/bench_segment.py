@@ -5,12 +5,16 @@
 2. Segmentation on synthetic captures (``plantsplat synth``, several seeds, 540x960): mask IoU
    against the ground truth (mean, worst frame), boundary F-score (2 px tolerance) and seconds per
    frame, for the classic backend (targets: mean IoU >= 0.95, worst >= 0.85, <= 0.1 s per frame) and
-   for SAM-2 when ``--sam2-checkpoint`` is given.
+   for SAM-2 when ``--sam2-checkpoint`` is given. Without a checkpoint, ``--sam2-random-weights CONFIG`` times
+   the sam2 backend with a randomly initialised model of that SAM-2 architecture (its speed does not depend
+   on the weights; its masks are meaningless, so no quality is recorded for it).
 
 Writes ``benchmarks/results/segment.json`` (atomically), with machine info (CPU, cores, load, versions).
 
 Usage:
     .venv/bin/python benchmarks/bench_segment.py [--seeds 0 1 2 3 4] [--frames 120] [--skip-video]
+    .venv/bin/python benchmarks/bench_segment.py --seeds 0 --skip-video \
+        --sam2-random-weights configs/sam2.1/sam2.1_hiera_t.yaml --results benchmarks/results/segment_sam2_speed.json
 """
 
 from __future__ import annotations
@@ -142,6 +146,28 @@ def mean_by_part(rows: list[dict], key: str) -> dict:
     return dict(sorted(vals.items(), key=lambda kv: -kv[1]))
 
 
+def random_sam2_checkpoint(config: str, path: Path) -> Path:
+    """A SAM-2 checkpoint of the architecture ``config`` with random weights (``{'model': state_dict}``)."""
+    import torch
+    from hydra import compose
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    import sam2  # noqa: F401  (sets up hydra's config search path)
+
+    cfg = compose(config_name=config)
+    OmegaConf.resolve(cfg)
+    torch.manual_seed(0)
+    torch.save({"model": instantiate(cfg.model, _recursive_=True).state_dict()}, path)
+    return path
+
+
+def seg_device() -> str:
+    import torch
+
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2, 3, 4])
@@ -150,6 +176,9 @@ def main() -> None:
     ap.add_argument("--height", type=int, default=960)
     ap.add_argument("--skip-video", action="store_true")
     ap.add_argument("--sam2-checkpoint", type=Path, default=None)
+    ap.add_argument("--sam2-random-weights", metavar="CONFIG", default=None,
+                    help="time the sam2 backend with a random model of this SAM-2 config (speed only)")
+    ap.add_argument("--results", type=Path, default=RESULTS, help="where to write the JSON results")
     ap.add_argument("--work", type=Path, default=None, help="keep captures here (default: a temp folder)")
     args = ap.parse_args()
     os.environ.setdefault("PLANTSPLAT_NO_PROGRESS", "1")
@@ -174,7 +203,10 @@ def main() -> None:
                                        "dropped": len(info["dropped"]), "target_s": 30.0, "met": dt < 30.0,
                                        "loadavg_after": list(os.getloadavg())}
             print(f"frame extraction: {dt:.1f} s for {len(info['frames'])} frames")
-        backends = ["classic"] + (["sam2"] if args.sam2_checkpoint else [])
+        sam2_ckpt, sam2_random = args.sam2_checkpoint, args.sam2_checkpoint is None and bool(args.sam2_random_weights)
+        if sam2_random:
+            sam2_ckpt = random_sam2_checkpoint(args.sam2_random_weights, work / "sam2_random.pt")
+        backends = ["classic"] + (["sam2"] if sam2_ckpt else [])
         runs = {b: [] for b in backends}
         for seed in args.seeds:
             cap = work / f"synth_{seed}"
@@ -185,21 +217,35 @@ def main() -> None:
                 ws = Workspace(work / f"ws_{seed}_{b}")
                 finfo = extract_frames(cap / "frames", ws, num=10_000, blur_ratio=0.0, dup_threshold=-1.0, force=True)
                 t, c = time.perf_counter(), time.process_time()
-                seg = segment_workspace(ws, backend=b, force=True, sam2_checkpoint=args.sam2_checkpoint)
+                seg = segment_workspace(ws, backend=b, force=True, sam2_checkpoint=sam2_ckpt,
+                                        sam2_config=args.sam2_random_weights if sam2_random else None)
                 dt, dc = time.perf_counter() - t, time.process_time() - c
-                sc = score_capture(cap, ws, finfo)
+                speed_only = b == "sam2" and sam2_random
+                sc = {} if speed_only else score_capture(cap, ws, finfo)
                 sc.update(seed=seed, frames=len(finfo["frames"]), seconds_per_frame=round(dt / len(finfo["frames"]), 4),
                           cpu_seconds_per_frame=round(dc / len(finfo["frames"]), 4),
                           locator=seg["capture"].get("plant_locator"),
                           frames_with_cube_pose=seg["capture"].get("frames_with_cube_pose"),
                           excluded=len(seg["excluded"]), loadavg=list(os.getloadavg()))
                 runs[b].append(sc)
+                if speed_only:
+                    print(f"{b} seed {seed} (random weights, speed only): {sc['seconds_per_frame']:.3f} s/frame "
+                          f"({sc['cpu_seconds_per_frame']:.3f} CPU s/frame)")
+                    continue
                 print(f"{b} seed {seed}: mean IoU {sc['mean_iou']:.3f} worst {sc['worst_iou']:.3f} "
                       f"BF {sc['boundary_f_2px']:.3f} {sc['seconds_per_frame']:.3f} s/frame "
                       f"({sc['cpu_seconds_per_frame']:.3f} CPU s/frame)")
         out["segmentation"] = {}
         for b, rs in runs.items():
             if not rs:
+                continue
+            if b == "sam2" and sam2_random:
+                out["segmentation"][b] = {
+                    "random_weights": args.sam2_random_weights, "device": seg_device(),
+                    "quality": "not measured: a randomly initialised model (speed only; no checkpoint on this machine)",
+                    "seconds_per_frame": round(float(np.mean([r["seconds_per_frame"] for r in rs])), 4),
+                    "cpu_seconds_per_frame": round(float(np.mean([r["cpu_seconds_per_frame"] for r in rs])), 4),
+                    "note": "includes the classic pass that prompts it", "per_seed": rs}
                 continue
             agg = {"seeds": args.seeds, "frames_per_capture": args.frames, "size": [args.width, args.height],
                    "mean_iou": round(float(np.mean([r["mean_iou"] for r in rs])), 4),
@@ -216,11 +262,11 @@ def main() -> None:
                 agg["met"] = {"mean_iou": agg["mean_iou"] >= 0.95, "worst_iou": agg["worst_iou"] >= 0.85,
                               "seconds_per_frame": agg["seconds_per_frame"] <= 0.1}
             out["segmentation"][b] = agg
-        if "sam2" not in runs:
+        if "sam2" not in out["segmentation"]:
             out["segmentation"]["sam2"] = {"not_run": "no SAM-2 checkpoint on this machine (pass --sam2-checkpoint)"}
     out["machine"]["loadavg_end"] = list(os.getloadavg())
-    write_json_atomic(RESULTS, out)
-    print(f"wrote {RESULTS}")
+    write_json_atomic(args.results, out)
+    print(f"wrote {args.results}")
 
 
 if __name__ == "__main__":

@@ -117,6 +117,10 @@ def sam2_segment(
     if device is None:
         device = "cuda" if torch.cuda.is_available() else "cpu"
     n = len(image_paths)
+    if device == "cpu":
+        log.warning("segment: SAM-2 runs on the CPU, which is slow (the tiny model took about 17 s per frame on 2 "
+                    "cores in benchmarks/bench_segment.py, so 120 frames take over half an hour); the classic backend "
+                    "takes under 0.1 s")
     try:
         extra = [f"++model.image_size={int(image_size)}"] if image_size else []
         predictor = build_sam2_video_predictor(config, str(checkpoint), device=device, hydra_overrides_extra=extra)
