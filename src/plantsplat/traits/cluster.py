@@ -119,9 +119,6 @@ def dbscan(
     return labels, float(eps)
 
 
-FAR_CLUSTERS = "large cluster(s) left out as too far from the plant"
-
-
 def far_clusters_reason(excluded: list[dict], plant_points: int) -> str | None:
     """The warning for clusters left out as far from the plant that hold more than 5 % of ``plant_points``, or None.
 
@@ -132,7 +129,8 @@ def far_clusters_reason(excluded: list[dict], plant_points: int) -> str | None:
     big = [e for e in excluded if e["reason"] == "far from the plant" and e["points"] > 0.05 * plant_points]
     if not big:
         return None
-    return f"{len(big)} {FAR_CLUSTERS} ({', '.join(str(e['points']) for e in big)} points): check the plant is not split"
+    return (f"{len(big)} large cluster(s) left out as too far from the plant "
+            f"({', '.join(str(e['points']) for e in big)} points): check the plant is not split")
 
 
 @dataclass
@@ -148,7 +146,8 @@ class PlantSelection:
     excluded: list[dict]
     """Clusters left out (label, points, reason)."""
     reasons: list[str]
-    """Quality warnings (fragmented plant, large excluded clusters)."""
+    """Quality warnings about a fragmented plant (large clusters left out: :func:`far_clusters_reason`, once the
+    caller has joined what belongs to the plant, such as hanging fruit)."""
 
 
 def select_plant(
@@ -229,7 +228,4 @@ def select_plant(
         reasons.append(f"plant assembled from {len(chosen)} clusters (more than {max_pieces}): reconstruction is fragmented")
     if main_fraction < 0.25:
         reasons.append(f"largest plant cluster holds only {main_fraction:.0%} of the plant's points: reconstruction is fragmented")
-    far = far_clusters_reason(excluded, total)
-    if far:
-        reasons.append(far)
     return PlantSelection(mask=mask, clusters=chosen, main_fraction=float(main_fraction), excluded=excluded, reasons=reasons)

@@ -313,7 +313,7 @@ def measure_traits(
         >>> res.quality, res.reasons[0][:26]
         ('failed', 'the point cloud is empty (')
     """
-    from plantsplat.traits.cluster import FAR_CLUSTERS, dbscan, far_clusters_reason, select_plant
+    from plantsplat.traits.cluster import dbscan, far_clusters_reason, select_plant
     from plantsplat.traits.cube_fit import (
         cube_frame_transform,
         decide_up,
@@ -500,10 +500,9 @@ def measure_traits(
             sel.clusters.extend(joined)
             notes.append(f"{len(joined)} fruit-coloured cluster(s) (red or unripe) hanging within {s.fruit_join_cm:g} cm "
                          "of the plant joined it (fruit on peduncles too thin to reconstruct)")
-            sel.reasons[:] = [r for r in sel.reasons if FAR_CLUSTERS not in r]
-            far = far_clusters_reason(sel.excluded, int(plant_mask.sum()))
-            if far:
-                sel.reasons.append(far)
+    far = far_clusters_reason(sel.excluded, int(plant_mask.sum()))  # what is still left out after fruit joined
+    if far:
+        sel.reasons.append(far)
     reasons.extend(sel.reasons)
     clusters_info.update({"plant_clusters": sel.clusters, "fruit_joined": joined, "plant_main_fraction": sel.main_fraction,
                           "excluded": sel.excluded[:20], "plant_points": int(plant_mask.sum())})
