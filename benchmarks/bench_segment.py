@@ -32,6 +32,7 @@ from plantsplat.frames import extract_frames
 from plantsplat.io import write_json_atomic
 from plantsplat.resources import machine_info
 from plantsplat.segment import mask_iou, segment_workspace
+from plantsplat.segment.sam2_backend import random_checkpoint
 from plantsplat.synth.mesh import CALYX, CLASS_NAMES
 from plantsplat.workspace import Workspace
 
@@ -146,28 +147,6 @@ def mean_by_part(rows: list[dict], key: str) -> dict:
     return dict(sorted(vals.items(), key=lambda kv: -kv[1]))
 
 
-def random_sam2_checkpoint(config: str, path: Path) -> Path:
-    """A SAM-2 checkpoint of the architecture ``config`` with random weights (``{'model': state_dict}``)."""
-    import torch
-    from hydra import compose
-    from hydra.utils import instantiate
-    from omegaconf import OmegaConf
-
-    import sam2  # noqa: F401  (sets up hydra's config search path)
-
-    cfg = compose(config_name=config)
-    OmegaConf.resolve(cfg)
-    torch.manual_seed(0)
-    torch.save({"model": instantiate(cfg.model, _recursive_=True).state_dict()}, path)
-    return path
-
-
-def seg_device() -> str:
-    import torch
-
-    return "cuda" if torch.cuda.is_available() else "cpu"
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2, 3, 4])
@@ -205,7 +184,7 @@ def main() -> None:
             print(f"frame extraction: {dt:.1f} s for {len(info['frames'])} frames")
         sam2_ckpt, sam2_random = args.sam2_checkpoint, args.sam2_checkpoint is None and bool(args.sam2_random_weights)
         if sam2_random:
-            sam2_ckpt = random_sam2_checkpoint(args.sam2_random_weights, work / "sam2_random.pt")
+            sam2_ckpt = random_checkpoint(args.sam2_random_weights, work / "sam2_random.pt")
         backends = ["classic"] + (["sam2"] if sam2_ckpt else [])
         runs = {b: [] for b in backends}
         for seed in args.seeds:
@@ -221,7 +200,8 @@ def main() -> None:
                                         sam2_config=args.sam2_random_weights if sam2_random else None)
                 dt, dc = time.perf_counter() - t, time.process_time() - c
                 speed_only = b == "sam2" and sam2_random
-                sc = {} if speed_only else score_capture(cap, ws, finfo)
+                sc = {k: seg["settings"]["sam2"][k] for k in ("device", "image_size")} if speed_only else \
+                    score_capture(cap, ws, finfo)
                 sc.update(seed=seed, frames=len(finfo["frames"]), seconds_per_frame=round(dt / len(finfo["frames"]), 4),
                           cpu_seconds_per_frame=round(dc / len(finfo["frames"]), 4),
                           locator=seg["capture"].get("plant_locator"),
@@ -241,7 +221,7 @@ def main() -> None:
                 continue
             if b == "sam2" and sam2_random:
                 out["segmentation"][b] = {
-                    "random_weights": args.sam2_random_weights, "device": seg_device(),
+                    "random_weights": args.sam2_random_weights, "device": rs[0]["device"],
                     "quality": "not measured: a randomly initialised model (speed only; no checkpoint on this machine)",
                     "seconds_per_frame": round(float(np.mean([r["seconds_per_frame"] for r in rs])), 4),
                     "cpu_seconds_per_frame": round(float(np.mean([r["cpu_seconds_per_frame"] for r in rs])), 4),

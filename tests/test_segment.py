@@ -350,16 +350,9 @@ def test_cli_segment_error(tmp_path, capsys):
 )
 def test_sam2_backend_plumbing(synth_capture, tmp_path):
     pytest.importorskip("sam2", reason="the optional sam2 package is not installed")
-    import torch
-    from hydra import compose
-    from hydra.utils import instantiate
-    from omegaconf import OmegaConf
+    from plantsplat.segment.sam2_backend import random_checkpoint
 
-    cfg = compose(config_name="configs/sam2.1/sam2.1_hiera_t.yaml")
-    OmegaConf.resolve(cfg)
-    torch.manual_seed(0)
-    ckpt = tmp_path / "sam2.1_hiera_tiny.pt"
-    torch.save({"model": instantiate(cfg.model, _recursive_=True).state_dict()}, ckpt)  # random weights
+    ckpt = random_checkpoint("configs/sam2.1/sam2.1_hiera_t.yaml", tmp_path / "sam2.1_hiera_tiny.pt")
     cap = synth_capture(seed=1, frames=36, width=270, height=480)
     ws = Workspace(tmp_path / "ws")
     extract_frames(cap / "frames", ws, num=3, min_frames=2, max_size=160)

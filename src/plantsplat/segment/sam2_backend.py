@@ -76,6 +76,27 @@ def resolve_config(checkpoint: Path, config: str | None) -> str:
     return f"configs/{version}/{version}_hiera_{size}.yaml"
 
 
+def random_checkpoint(config: str, path: str | os.PathLike, seed: int = 0) -> Path:
+    """Save a SAM-2 checkpoint of the architecture ``config`` with random weights (``{'model': state_dict}``) to
+    ``path``: for tests of the plumbing and for timing, never for masks (speed does not depend on the weights).
+
+    Example:
+        >>> random_checkpoint("configs/sam2.1/sam2.1_hiera_t.yaml", "/tmp/sam2.1_hiera_tiny.pt")  # doctest: +SKIP
+    """
+    import torch
+    from hydra import compose
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    import sam2  # noqa: F401  (registers SAM-2's configs with hydra)
+
+    cfg = compose(config_name=config)
+    OmegaConf.resolve(cfg)
+    torch.manual_seed(seed)
+    torch.save({"model": instantiate(cfg.model, _recursive_=True).state_dict()}, path)
+    return Path(path)
+
+
 def _prompt(mask: np.ndarray, n_points: int = 3) -> tuple[np.ndarray, np.ndarray] | None:
     """Box ``[4]`` (x0, y0, x1, y1) and positive points ``[n, 2]`` (x, y) from a bool mask ``[H, W]``."""
     import cv2
