@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import cv2
@@ -343,11 +342,6 @@ def test_cli_segment_error(tmp_path, capsys):
     assert "images" in err and "Traceback" not in err
 
 
-@pytest.mark.skipif(
-    os.environ.get("PLANTSPLAT_TEST_SAM2") != "1",
-    reason="SAM-2 on this CPU takes ~70 s for 3 tiny frames (over the segment tests' 90 s budget); "
-    "set PLANTSPLAT_TEST_SAM2=1 to run it",
-)
 def test_sam2_backend_plumbing(synth_capture, tmp_path):
     pytest.importorskip("sam2", reason="the optional sam2 package is not installed")
     from plantsplat.segment.sam2_backend import random_checkpoint
