@@ -1,4 +1,4 @@
-"""The 10 cm ArUco calibration cube: geometry, marker detection and pose.
+"""The 10 cm ArUco calibration cube: geometry and pose (detection: :mod:`plantsplat.markers`).
 
 Cube frame (used by ``plantsplat synth``, segmentation and metric calibration alike): origin at the
 centre of the bottom face, i.e. on the ground plane under the cube, +z up, edges along x and y,
@@ -103,30 +103,6 @@ class CubeSpec:
         if not hasattr(cv2.aruco, self.dictionary):
             raise ValueError(f"unknown ArUco dictionary {self.dictionary!r}")
         return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
-
-
-def detect_markers(image: np.ndarray, cube: CubeSpec = CubeSpec()) -> dict[int, np.ndarray]:
-    """Detect the cube's markers in an RGB or gray uint8 image with sub-pixel corners.
-
-    Returns ``{marker_id: corners [4, 2]}`` (pixels, ArUco corner order) for ids that belong to the cube.
-    """
-    import cv2
-
-    gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-    params = cv2.aruco.DetectorParameters()
-    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
-    # a small window: the cube edge is only 2 mm outside each marker, and the default (5 px) pulls
-    # corners inward at oblique views (median corner error 1.36 -> 0.92 px on synthetic captures)
-    params.cornerRefinementWinSize = 3
-    detector = cv2.aruco.ArucoDetector(cube.aruco_dictionary(), params)
-    corners, ids, _ = detector.detectMarkers(gray)
-    out: dict[int, np.ndarray] = {}
-    if ids is None:
-        return out
-    for c, i in zip(corners, ids.ravel()):
-        if cube.face_of(int(i)) is not None:
-            out[int(i)] = np.asarray(c, dtype=np.float64).reshape(4, 2)
-    return out
 
 
 def cube_pose(

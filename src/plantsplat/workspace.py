@@ -5,14 +5,15 @@ Layout (every stage reads and writes only these paths; see the README's "Outputs
     WS/
       images/frame_00000.png      RGB frames chosen from the video               (frames)
       frames.json                 source video/folder, source frame index per image (frames)
-      masks/frame_00000.png       uint8 mask, 255 = plant or cube               (segment)
-      rgba/frame_00000.png        RGBA image, alpha = mask                      (segment)
-      segment.json, masks_preview.png                                           (segment)
+      markers.json                the cube's marker corners in every frame     (poses)
       sparse/0/                   calibrated COLMAP model, binary (cm, z up)    (poses)
       sparse_text/0/              the same model as text                        (poses)
       transforms.json             nerfstudio cameras (OpenGL axes, cm, z up)    (poses)
       poses.json                  registration and calibration report           (poses)
       sparse_points.ply           SfM points (cm, z up)                          (poses)
+      masks/frame_00000.png       uint8 mask, 255 = plant or cube               (segment)
+      rgba/frame_00000.png        RGBA image, alpha = mask                      (segment)
+      segment.json, masks_preview.png                                           (segment)
       train/                      split.json, checkpoints, config               (train)
       export/splat.ply            Inria-layout 3DGS PLY                          (export)
       export/points.ply           opacity-filtered centres with colours         (export)
@@ -68,6 +69,10 @@ class Workspace:
         return self.root / "segment.json"
 
     # poses
+    @property
+    def markers_json(self) -> Path:
+        return self.root / "markers.json"
+
     @property
     def sparse_dir(self) -> Path:
         return self.root / "sparse" / "0"

@@ -179,7 +179,12 @@ def segment_workspace(
     paths = [ws.images_dir / n for n in names]
     t0 = time.perf_counter()
     seg = ClassicSegmenter(settings)
-    ctx = seg.analyse(paths, keep_bytes=_CACHE_BYTES)  # frames within the budget stay decoded until written
+    markers = None
+    if ws.markers_json.is_file():
+        from plantsplat.markers import read_markers
+
+        markers = read_markers(ws.markers_json).frames
+    ctx = seg.analyse(paths, keep_bytes=_CACHE_BYTES, markers=markers)  # frames within the budget stay decoded
     t_analyse = time.perf_counter() - t0
     masks: list[np.ndarray] = []
     parts: list[tuple[np.ndarray, np.ndarray]] = []  # packed (plant, cube) for SAM-2 prompts

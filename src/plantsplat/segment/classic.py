@@ -47,7 +47,8 @@ from typing import Any
 
 import numpy as np
 
-from plantsplat.cube import CubeSpec, detect_markers
+from plantsplat.cube import CubeSpec
+from plantsplat.markers import detect_markers
 from plantsplat.io import read_image
 from plantsplat.log import get_logger, progress
 from plantsplat.segment import geometry as geo
@@ -341,9 +342,11 @@ class ClassicSegmenter:
         self.s = settings
 
     # ---------------------------------------------------------------- pass 1: the whole capture
-    def analyse(self, image_paths: list[Path], keep_bytes: int = 0) -> CaptureContext:
+    def analyse(self, image_paths: list[Path], keep_bytes: int = 0,
+                markers: dict[str, dict[int, np.ndarray]] | None = None) -> CaptureContext:
         """Read every frame once: markers, strong colour masks, cameras, the plant's visual hull. The first frames,
-        up to ``keep_bytes`` of them, stay decoded in :attr:`frames` (index -> RGB) for the per-frame pass."""
+        up to ``keep_bytes`` of them, stay decoded in :attr:`frames` (index -> RGB) for the per-frame pass.
+        ``markers``: the capture's detections by frame name (``markers.json``); without them each frame is searched."""
         import cv2
 
         s = self.s
@@ -359,7 +362,12 @@ class ClassicSegmenter:
         def one(p: Path):
             rgb = read_image(p)
             h, w = rgb.shape[:2]
-            det = detect_markers(rgb, s.cube) if s.use_cube else {}
+            if not s.use_cube:
+                det = {}
+            elif markers is not None:
+                det = markers.get(Path(p).name, {})
+            else:
+                det = detect_markers(rgb, s.cube)
             sw, sh, _ = _small_size(w, h, s.analysis_size)
             half = cv2.resize(rgb, (2 * sw, 2 * sh), interpolation=cv2.INTER_AREA)  # colours at twice the analysis size
             strong, weak, _, red = plant_colour_masks(half, s.colour, with_red=True)

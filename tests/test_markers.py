@@ -1,0 +1,104 @@
+"""The cube's markers: detection, X-junctions and the edge-shift correction, on markers drawn with known geometry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+cv2 = pytest.importorskip("cv2")
+
+from plantsplat.cube import CubeSpec  # noqa: E402
+from plantsplat.markers import (  # noqa: E402
+    Markers,
+    detect_markers,
+    edge_shift_px,
+    junctions,
+    marker_cells,
+    read_markers,
+    shift_corners,
+    write_markers,
+)
+
+
+def draw_marker(marker_id: int, corners: np.ndarray, erode_px: float, size=(480, 480), ss: int = 8) -> np.ndarray:
+    """A gray frame showing one marker (white card around it) whose corners land on ``corners`` [4, 2], with its
+    black print eroded by ``erode_px`` pixels, drawn ``ss`` times larger and averaged down (pixel centres at
+    integer coordinates)."""
+    cube = CubeSpec()
+    n = marker_cells(marker_id, cube).shape[0]
+    print_px = 60 * n
+    printed = cv2.aruco.generateImageMarker(cube.aruco_dictionary(), marker_id, print_px, borderBits=1)
+    # the print's outer edges, in the pixel-centre coordinates of the card (the print sits 20 px inside it)
+    src = np.array([[0, 0], [print_px, 0], [print_px, print_px], [0, print_px]], np.float32) + 19.5
+    dst = ((corners + 0.5) * ss - 0.5).astype(np.float32)  # the same points in the drawing, ss times larger
+    Hc = cv2.getPerspectiveTransform(src, dst)
+    W, Hh = size[0] * ss, size[1] * ss
+    card = np.full((print_px + 40, print_px + 40), 255, np.uint8)
+    card[20:-20, 20:-20] = printed
+    big = cv2.warpPerspective(card, Hc, (W, Hh), flags=cv2.INTER_NEAREST, borderValue=90)
+    k = int(round(erode_px * ss))
+    if k > 0:  # black shrinks: white grows
+        big = cv2.dilate(big, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1)))
+    small = cv2.resize(big, size, interpolation=cv2.INTER_AREA)
+    return cv2.GaussianBlur(small, (0, 0), 0.7)
+
+
+CORNERS = np.array([[140.0, 120.0], [350.0, 135.0], [335.0, 340.0], [130.0, 325.0]])
+
+
+def test_junctions_of_a_known_marker():
+    cells = marker_cells(0)
+    assert cells.shape == (6, 6) and cells[0].all() and cells[:, 0].all()  # the black border
+    pts, dark = junctions(0)
+    assert len(pts) == 3
+    # every junction sits on the cell grid (1.6 cm cells of a 9.6 cm marker), inside the border
+    grid = (pts + 4.8) / 1.6
+    assert np.allclose(grid, np.round(grid)) and (grid >= 2 - 1e-9).all() and (grid <= 4 + 1e-9).all()
+    for (x, y), d in zip(pts, dark):
+        j, i = int(round((x + 4.8) / 1.6)), int(round((4.8 - y) / 1.6))
+        q = cells[i - 1:i + 1, j - 1:j + 1]
+        assert q[0, 0] == q[1, 1] == d and q[0, 1] == q[1, 0] == (not d)
+
+
+def test_shift_corners_moves_each_corner_along_its_bisector():
+    sq = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])
+    assert np.allclose(shift_corners(sq, 1.0), [[-1, -1], [11, -1], [11, 11], [-1, 11]])
+    assert np.allclose(shift_corners(shift_corners(sq, 0.7), -0.7), sq)
+
+
+@pytest.mark.parametrize("erode", [0.0, 0.8])
+def test_edge_shift_is_measured_and_taken_back(erode):
+    """Black print eroded by a known amount: the detected corners lie inward by about that much; the junctions
+    measure it and the corrected corners are back where the marker is."""
+    img = draw_marker(0, CORNERS, erode)
+    det = detect_markers(img)
+    assert set(det) == {0}
+    raw = det[0]
+    shift = edge_shift_px(img, 0, raw)
+    assert shift is not None and abs(shift - erode) < 0.25, shift
+    fixed = shift_corners(raw, shift)
+    assert np.abs(fixed - CORNERS).max() < 0.35
+    if erode:
+        assert np.abs(raw - CORNERS).max() > 0.7  # without the correction the corners are off
+
+
+def test_junctions_hidden_by_an_occluder_are_not_used():
+    img = draw_marker(0, CORNERS, 0.8)
+    raw = detect_markers(img)[0]
+    hidden = img.copy()
+    hidden[180:300, 180:300] = 200  # a pale object over the marker's middle: no junction is seen there
+    assert edge_shift_px(hidden, 0, raw) is None
+
+
+def test_markers_file_roundtrip(tmp_path):
+    m = Markers(frames={"frame_00000.png": {0: CORNERS.copy()}}, edge_shift_px=0.4, shift_samples=5,
+                names=["frame_00000.png", "frame_00001.png"])
+    write_markers(tmp_path / "markers.json", m, CubeSpec())
+    back = read_markers(tmp_path / "markers.json")
+    assert back.names == m.names and back.edge_shift_px == 0.4 and back.shift_samples == 5
+    assert np.allclose(back.frames["frame_00000.png"][0], CORNERS, atol=1e-4)
+    (tmp_path / "bad.json").write_text('{"frames": 3}')
+    from plantsplat.errors import PlantsplatError
+
+    with pytest.raises(PlantsplatError, match="not a markers file"):
+        read_markers(tmp_path / "bad.json")
