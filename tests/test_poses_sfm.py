@@ -4,7 +4,6 @@ and the real ROMI plant against its given poses (up to a similarity)."""
 from __future__ import annotations
 
 import json
-import os
 import shutil
 
 import numpy as np
@@ -14,21 +13,21 @@ pytest.importorskip("pycolmap")
 
 from plantsplat.io import read_json, write_image_atomic  # noqa: E402
 from plantsplat.poses import PosesConfig, estimate_poses  # noqa: E402
-from plantsplat.poses.evaluate import compare_poses, model_c2w, synth_reference, transforms_c2w  # noqa: E402
+from plantsplat.poses.evaluate import (  # noqa: E402
+    compare_poses,
+    model_c2w,
+    reference_cameras,
+    synth_reference,
+    transforms_c2w,
+)
 from plantsplat.poses.interop import read_colmap  # noqa: E402
 from plantsplat.workspace import Workspace  # noqa: E402
 
 
-SLOW = pytest.mark.skipif(
-    not os.environ.get("PLANTSPLAT_SLOW_TESTS"),
-    reason="synthetic SfM run takes minutes (render + SfM of 72 frames); set PLANTSPLAT_SLOW_TESTS=1",
-)
-
-
 @pytest.fixture(scope="module")
 def synth_run(synth_capture, tmp_path_factory):
-    # 72 frames (24 per ring, 15 degrees apart) at 360x640: smaller captures do not register (SIFT finds
-    # too few matches 22 degrees apart at 270x480); the benchmark runs the real size, 120 at 540x960
+    # 72 frames (24 per ring, 15 degrees apart) at 360x640, about 30 s of SfM: smaller captures do not register
+    # (SIFT finds too few matches 22 degrees apart at 270x480); the benchmark runs the real size, 120 at 540x960
     cap = synth_capture(seed=3, frames=72, width=360, height=640)
     ws = Workspace(tmp_path_factory.mktemp("poses_synth") / "ws")
     shutil.copytree(cap / "frames", ws.images_dir)
@@ -36,7 +35,6 @@ def synth_run(synth_capture, tmp_path_factory):
     return cap, ws, report
 
 
-@SLOW
 def test_synthetic_capture_metric_poses(synth_run):
     cap, ws, report = synth_run
     gt = read_json(cap / "ground_truth.json")
@@ -46,26 +44,29 @@ def test_synthetic_capture_metric_poses(synth_run):
     est = transforms_c2w(read_json(ws.transforms_json))
     err = compare_poses(est, ref)
     # both frames are metric with z up: the fitted similarity is the calibration error
-    # (measured on this capture: scale 1.6 %, up 0.08 deg, origin 0.5 cm, rotation 0.7 deg, centre 0.9 cm;
-    # the 120-frame 540x960 benchmark captures meet the issue's targets)
+    # (the 120-frame 540x960 captures of the poses benchmark come much closer to the truth)
     assert err["scale_error_pct"] < 3.0, err
     assert err["up_error_deg"] < 0.5, err
     assert err["origin_error"] < 1.5, err  # cm
     assert err["rotation_error_deg"]["median"] < 1.5, err
     assert err["centre_error"]["median"] < 2.0, err  # cm
+    # SfM poses a few frames of this sparse capture wrongly (15 degrees apart): the path check leaves out those
+    # far off (12 degrees on this capture); one 4.5 degrees off is within a third of its 15-degree step and stays
+    assert err["rotation_error_deg"]["max"] < 6.0, err
+    assert len(report["off_path"]) <= 0.05 * report["total"], report["off_path"]
     # the binary and text COLMAP models hold the same calibrated cameras as transforms.json
     for d in (ws.sparse_dir, ws.sparse_text_dir):
         m = compare_poses(model_c2w(read_colmap(d)), est)
         assert m["centre_error"]["max"] < 1e-3 and abs(m["similarity"]["scale"] - 1) < 1e-6
 
 
-@SLOW
 def test_synthetic_outputs_and_resume(synth_run):
     cap, ws, report = synth_run
     from plyfile import PlyData
 
     ply = PlyData.read(str(ws.sparse_points_ply))["vertex"]
     assert ply.count == report["num_points"] > 100
+    assert report["status"] == "ok"
     assert {"x", "y", "z", "red", "green", "blue"} <= {p.name for p in ply.properties}
     data = json.loads(ws.transforms_json.read_text())
     assert data["camera_model"] == "OPENCV" and data["w"] == 360 and data["h"] == 640
@@ -78,7 +79,6 @@ def test_synthetic_outputs_and_resume(synth_run):
     assert again["fingerprint"] == report["fingerprint"] and ws.poses_json.stat().st_mtime_ns == mtime
 
 
-@SLOW
 def test_import_colmap_is_recalibrated(synth_run, tmp_path):
     """A user's model in arbitrary units and orientation is brought into the cube frame on import."""
     import pycolmap
@@ -124,3 +124,34 @@ def test_romi_real_plant_matches_given_poses(datasets_dir, tmp_path):
     # the focal length (scaled to 720 px wide) agrees with the scanner's calibration
     f = report["camera"]["params"][0]
     assert f == pytest.approx(1158.76 * 0.5, rel=0.05)  # measured: 3.8 % above (the scanner used OPENCV, we RADIAL)
+
+
+def test_foreign_capture_registers_without_masks_or_cube(datasets_dir, tmp_path):
+    """A quarter of each ring of an independent render (45 frames, 6 degrees apart; the cube's markers in few
+    of them), matched by retrieval (video neighbours + a vocabulary learned from the frames): every frame
+    registers near its true camera, and the cube then gives the scale."""
+    import av
+
+    cap = datasets_dir / "foreign_renders" / "101"
+    if not cap.is_dir():
+        pytest.skip(f"{cap} not found")
+    keep = [i for ring in (0, 60, 120) for i in range(ring, ring + 15)]
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    with av.open(str(cap / "video.mp4")) as c:
+        for i, frame in enumerate(c.decode(video=0)):
+            if i in keep:
+                write_image_atomic(folder / f"img_{i:03d}.png", frame.to_ndarray(format="rgb24"))
+    from plantsplat.frames import extract_frames
+
+    ws = Workspace(tmp_path / "ws")
+    extract_frames(folder, ws, num=len(keep), max_size=960)
+    names = ws.image_names()
+    report = estimate_poses(ws, PosesConfig(exhaustive_max_frames=0))  # retrieval, as for a full capture
+    assert report["matcher"] == "retrieval" and report["status"] == "ok"
+    assert report["registered"] >= len(names) - 1, report["unregistered"]
+    truth = json.loads((cap / "ground_truth.json").read_text())
+    err = compare_poses(transforms_c2w(read_json(ws.transforms_json)), reference_cameras(truth, dict(zip(names, keep))))
+    assert err["rotation_error_deg"]["median"] < 0.5 and err["centre_error"]["median"] < 1.0, err
+    assert report["scale_source"] == "aruco" and err["scale_error_pct"] < 2.0, err
+    assert {c["name"] for c in report["checks"]} >= {"registered_share", "cube_reprojection_px", "cube_scale_halves"}

@@ -234,78 +234,67 @@ def test_import_transforms_keeps_poses_and_writes_outputs(tmp_path, capsys):
     assert (ws / "poses.json").stat().st_mtime_ns == mtime
 
 
-@pytest.mark.parametrize("video", [True, False])
-def test_wrongly_posed_frames_are_found_on_and_off_the_cube(video):
-    """A frame turned off the orbit is found from its neighbours, with markers or without; a good orbit keeps all.
-
-    Video: frames kept 1 or 2 source frames apart, the camera rising steadily. Photos: two rings, the
-    second a step above the first.
-    """
-    from scipy.spatial.transform import Rotation
-
-    from plantsplat.poses.estimate import wrongly_posed
-
-    rng = np.random.default_rng(3)
-    cube = CubeSpec()
-    steps = np.cumsum([0] + [1 + (i % 2) for i in range(47)]) if video else np.arange(48)
+def video_orbit(steps, ring_change: bool):
+    """Cameras circling a plant at 4.5 degrees per time step; rising steadily (a video) or a step up half way."""
     gt = {}
     for i, x in enumerate(steps):
-        a = 2 * np.pi * x / steps[24]  # 15 degrees a frame
-        h = 12.0 + 23.0 * x / steps[-1] if video else (12.0 if i < 24 else 35.0)
+        a = 2 * np.pi * x / 80
+        h = (12.0 if i < len(steps) // 2 else 35.0) if ring_change else 12.0 + 23.0 * x / steps[-1]
         gt[f"frame_{i:05d}.png"] = look_at(np.array([15 + 45 * np.cos(a), 45 * np.sin(a), h]), np.array([15.0, 0, 8.0]))
-    names = sorted(gt)
-    positions = list(steps) if video else None
-    det = detections_for(gt, cube, rng)
-    rec = make_rec(gt)
-    cal = calibrate(rec, det, cube)
-    assert wrongly_posed(rec, cal, det, names, 3.0, positions) == []
-
-    turn = np.eye(4)
-    turn[:3, :3] = Rotation.from_euler("z", 35, degrees=True).as_matrix()
-    blind, seen = names[10], names[33]
-    det.pop(blind)  # no marker seen (the pot hides the cube): only the camera's path can tell
-    bad = dict(gt)
-    for n in (blind, seen):
-        bad[n] = turn @ gt[n]
-    rec = make_rec(bad)
-    cal = calibrate(rec, det, cube)
-    assert cal.consistent  # one frame of many: the model as a whole still passes the cube check
-    assert wrongly_posed(rec, cal, det, names, 3.0, positions) == sorted([blind, seen])
+    return gt
 
 
-def test_model_warped_as_a_whole_is_adjusted_onto_the_cube():
-    """A merged model whose second half drifted fails the cube check; adjusting it onto the cube's corners
-    brings its cameras back; a frame posed the wrong way (all its markers far off) does not pull them."""
+@pytest.mark.parametrize("ring_change", [False, True])
+def test_frames_off_the_camera_path_are_found(ring_change):
+    """A good orbit keeps every frame (also across a step up to the next ring); frames turned or moved off
+    the path of their video neighbours are found, and only they."""
     from scipy.spatial.transform import Rotation
 
-    from plantsplat.poses.estimate import PosesConfig, _adjust_onto_cube
+    from plantsplat.poses.checks import off_path, path_deviations
+    from plantsplat.poses.estimate import PosesConfig
 
-    rng = np.random.default_rng(4)
-    cube = CubeSpec()
-    gt = orbit(n=48)
+    limit = PosesConfig().max_path_deviation
+    steps = np.cumsum([0] + [1 + (i % 2) for i in range(47)]).astype(float)  # kept frames 1 or 2 source frames apart
+    gt = video_orbit(steps, ring_change)
     names = sorted(gt)
-    det = detections_for(gt, cube, rng)
-    warped = {}
-    for i, n in enumerate(names):
-        M = gt[n].copy()
-        if i >= 24:  # the second fragment: 5 % too far from the cube
-            M[:3, 3] = 1.05 * M[:3, 3]
-        warped[n] = M
-    wrong = names[30]
+    dev = path_deviations(gt, names, list(steps))
+    assert len(dev) == len(names) and max(dev.values()) < 0.2  # what is left is the arc between neighbours
+    assert off_path(gt, names, list(steps), limit) == []
+    bad = dict(gt)
     turn = np.eye(4)
-    turn[:3, :3] = Rotation.from_euler("z", 35, degrees=True).as_matrix()
-    warped[wrong] = turn @ gt[wrong]
-    rec = make_rec(warped, random_sim(rng))
-    cal = calibrate(rec, det, cube)
-    assert not cal.consistent
-    out = _adjust_onto_cube(rec, cal, det, cube, PosesConfig())
-    assert out is not None
-    trial, drop = out
-    assert drop <= {wrong}
-    fixed = calibrate(trial, {n: d for n, d in det.items() if n not in drop}, cube)
-    assert fixed.consistent and fixed.median_residual_px < 1.0
-    assert {n for n, _, r in fixed.detections_rejected if r > 6.0} <= {wrong}
-    err = compare_poses({n: M for n, M in model_c2w(trial).items() if n != wrong}, gt)
-    assert err["centre_error"]["max"] < 0.5 and err["scale_error_pct"] < 0.5, err
-    # a model that passes needs nothing
-    assert _adjust_onto_cube(make_rec(gt), calibrate(make_rec(gt), det, cube), det, cube, PosesConfig()) is None
+    turn[:3, :3] = Rotation.from_euler("y", 6, degrees=True).as_matrix()
+    bad[names[10]] = gt[names[10]] @ turn  # turned in place by 6 degrees (its neighbours are 4.5-9 degrees apart)
+    bad[names[33]] = gt[names[33]].copy()
+    bad[names[33]][:3, 3] += [0.0, 0.0, 6.0]  # lifted by 6 cm (its neighbours are 3.5-7 cm apart)
+    assert sorted(off_path(bad, names, list(steps), limit)) == [names[10], names[33]]
+    # without the frames between, the rest of the path is judged as before
+    assert off_path({n: M for n, M in gt.items() if n not in (names[10], names[33])}, names, list(steps), limit) == []
+
+
+def test_face_offsets_find_a_face_out_of_place():
+    """SfM points on the cube's faces: in place on a right model; a face 4 mm out shows as its offset."""
+    from plantsplat.poses.checks import face_offsets
+
+    rng = np.random.default_rng(0)
+    cube = CubeSpec()
+    pts = []
+    for face in ("+x", "-y", "top"):
+        c, n, r, u = cube.face_frame(face)
+        a, b = rng.uniform(-4.0, 4.0, (2, 200))
+        pts.append(c + np.outer(a, r) + np.outer(b, u) + np.outer(rng.normal(0, 0.05, 200), n))
+    room = rng.uniform(-60, 60, (500, 3))
+    room = room[np.abs(room).max(1) > 9]  # points elsewhere in the room are not on the cube
+    P = np.concatenate(pts + [room])
+    off = face_offsets(P, cube)
+    assert set(off) == {"+x", "-y", "top"} and all(abs(o) < 0.02 and k >= 150 for o, k in off.values())
+    P[:200] += [0.4, 0.0, 0.0]  # the +x face's points 4 mm out
+    assert abs(face_offsets(P, cube)["+x"][0] - 0.4) < 0.02
+
+
+def test_checks_say_what_failed():
+    from plantsplat.poses.checks import Check
+
+    ok, bad = Check("registered_share", 0.95, 0.8, ">="), Check("cube_reprojection_px", 7.2, 3.0, "<=", "median")
+    assert ok.passed and not bad.passed and not Check("x", None, 1.0).passed
+    assert bad.line() == "cube_reprojection_px 7.2 (needs <= 3): median"
+    assert bad.as_dict()["passed"] is False

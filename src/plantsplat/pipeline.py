@@ -1,4 +1,4 @@
-"""The end-to-end runner: frames -> segment -> poses -> train -> export -> traits (-> evaluate, report).
+"""The end-to-end runner: frames -> poses -> segment -> train -> export -> traits (-> evaluate, report).
 
 Each stage is a plain function over the workspace (see :mod:`plantsplat.workspace`). The runner
 records a stamp per finished stage (its configuration fingerprint and finish time) in
@@ -47,8 +47,8 @@ class RunOptions:
     """Segmenter: `classic` (offline, no model download) or `sam2` (needs --sam2-checkpoint)."""
     sam2_checkpoint: Path | None = None
     """SAM-2 checkpoint file for `--segment-backend sam2`."""
-    matcher: Literal["auto", "guided", "sequential", "exhaustive"] = "auto"
-    """COLMAP feature matching (`auto`: guided by video order and the cube's view directions)."""
+    matcher: Literal["auto", "retrieval", "exhaustive"] = "auto"
+    """COLMAP feature matching (`auto`: every pair for short captures, else video neighbours and retrieval)."""
     import_colmap: Path | None = None
     """Use your own COLMAP model (folder, .bin or .txt) instead of running SfM (still calibrated with the cube)."""
     import_transforms: Path | None = None
@@ -271,8 +271,8 @@ def pipeline_stages(opts: RunOptions) -> list[Stage]:
     """The stages `plantsplat run` executes for these options, in order."""
     stages = [
         Stage("frames", _stage_frames, lambda w: [w.frames_json, w.images_dir], ("num_frames", "max_size")),
+        Stage("poses", _stage_poses, lambda w: [w.sparse_dir, w.transforms_json, w.poses_json, w.markers_json], ("matcher", "import_colmap", "import_transforms")),
         Stage("segment", _stage_segment, lambda w: [w.masks_dir, w.segment_json], ("segment_backend", "sam2_checkpoint")),
-        Stage("poses", _stage_poses, lambda w: [w.sparse_dir, w.transforms_json, w.poses_json], ("matcher", "import_colmap", "import_transforms")),
         Stage("train", _stage_train, lambda w: [w.train_dir, w.metrics_json], ("mode", "backend", "iterations", "seed")),
         Stage("export", _stage_export, lambda w: [w.splat_ply, w.points_ply]),
         Stage("traits", _stage_traits, lambda w: [w.traits_json, w.traits_csv]),

@@ -17,7 +17,7 @@ The per-detection reprojection errors are also the model's consistency check: a 
 model cannot make the cube reproject where its markers are detected in every frame.
 
 Example:
-    >>> det = detect_all(Path("ws/images"), names)            # doctest: +SKIP
+    >>> det = read_markers(Path("ws/markers.json")).frames   # doctest: +SKIP
     >>> cal = calibrate(reconstruction, det)                  # doctest: +SKIP
     >>> cal.scale, cal.median_residual_px, cal.consistent     # doctest: +SKIP
     (12.7, 0.41, True)
@@ -26,25 +26,13 @@ Example:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from plantsplat.cube import CubeSpec, detect_markers
-from plantsplat.io import read_image
-from plantsplat.log import get_logger, progress
+from plantsplat.cube import CubeSpec
+from plantsplat.log import get_logger
 
 log = get_logger(__name__)
-
-
-def detect_all(image_dir: Path, names: list[str], cube: CubeSpec = CubeSpec()) -> dict[str, dict[int, np.ndarray]]:
-    """Detect the cube's markers in every frame: ``{name: {marker_id: corners [4, 2]}}`` (frames with none omitted)."""
-    out: dict[str, dict[int, np.ndarray]] = {}
-    for name in progress(names, "detecting cube markers"):
-        det = detect_markers(read_image(Path(image_dir) / name, mode="gray"), cube)
-        if det:
-            out[name] = det
-    return out
 
 
 @dataclass
@@ -108,7 +96,7 @@ def _project(P: np.ndarray, camera, X: np.ndarray) -> np.ndarray:
     return np.asarray(camera.img_from_cam(Xc, check_cheirality=False)).reshape(-1, 2)
 
 
-def _umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """Least-squares similarity with ``dst ~ s R src + t`` (Umeyama 1991). ``src, dst [N, 3]``."""
     mu_s, mu_d = src.mean(0), dst.mean(0)
     a, b = src - mu_s, dst - mu_d
@@ -187,11 +175,11 @@ def calibrate(
         s0 = float(np.cbrt(np.linalg.det(M[:, :3])))
         R0, t0 = M[:, :3] / s0, M[:, 3]
     else:
-        s0, R0, t0 = _umeyama(model_pts, cube_pts)
+        s0, R0, t0 = umeyama(model_pts, cube_pts)
     resid = np.linalg.norm((s0 * model_pts @ R0.T + t0) - cube_pts, axis=1)
     inl = resid < ransac.max_error
     if inl.sum() >= 4:
-        s0, R0, t0 = _umeyama(model_pts[inl], cube_pts[inl])
+        s0, R0, t0 = umeyama(model_pts[inl], cube_pts[inl])
     geometric_ok = inl.sum() >= max(4, 0.5 * len(inl))  # the triangulated corners do form the cube
 
     # 3. refine the cube's pose in the model by reprojection over all detections

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from plantsplat.poses.calibrate import _umeyama
+from plantsplat.poses.calibrate import umeyama
 
 
 def _stats(x: np.ndarray) -> dict:
@@ -43,7 +43,7 @@ def compare_poses(est: dict[str, np.ndarray], ref: dict[str, np.ndarray]) -> dic
         raise ValueError(f"need at least 3 common images to compare poses, got {len(names)}")
     Ce = np.array([np.asarray(est[n])[:3, 3] for n in names])  # [N, 3]
     Cr = np.array([np.asarray(ref[n])[:3, 3] for n in names])  # [N, 3]
-    s, R, t = _umeyama(Ce, Cr)
+    s, R, t = umeyama(Ce, Cr)
     centre_err = np.linalg.norm(s * Ce @ R.T + t - Cr, axis=1)  # [N]
     rot_err = np.array(
         [rotation_angle_deg(np.asarray(ref[n])[:3, :3].T @ R @ np.asarray(est[n])[:3, :3]) for n in names]
@@ -78,6 +78,26 @@ def transforms_c2w(data: dict) -> dict[str, np.ndarray]:
         Path(f["file_path"]).name: np.asarray(f["transform_matrix"], dtype=np.float64) @ OPENCV_TO_OPENGL
         for f in data["frames"]
     }
+
+
+def reference_cameras(ground_truth: dict, source_index: dict[str, int]) -> dict[str, np.ndarray]:
+    """The true cameras of a capture with ground truth, for the workspace frames, in our cube frame.
+
+    ``ground_truth``: a ``plantsplat synth`` ``ground_truth.json`` (``cube.T_world_cube``, whose frame is
+    ours: origin at the centre of the cube's bottom face) or the foreign renders' format
+    (``calibration_cube.cube_to_world`` with its origin at the cube's centre, ``frames[i].c2w``).
+    ``source_index``: each workspace frame's video frame number (``frames.json``). Returns camera-to-world
+    4x4 matrices (OpenCV axes, cm) by frame name.
+    """
+    if "cube" in ground_truth:
+        world_cube = np.asarray(ground_truth["cube"]["T_world_cube"], dtype=np.float64)
+    else:
+        cube = ground_truth["calibration_cube"]
+        world_cube = np.asarray(cube["cube_to_world"], dtype=np.float64) @ np.array(
+            [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, -cube["edge_cm"] / 2], [0, 0, 0, 1.0]])
+    cube_world = np.linalg.inv(world_cube)
+    frames = ground_truth["frames"]
+    return {name: cube_world @ np.asarray(frames[i]["c2w"], dtype=np.float64) for name, i in source_index.items()}
 
 
 def synth_reference(ground_truth: dict) -> dict[str, np.ndarray]:

@@ -10,7 +10,7 @@
 
 Example:
     >>> rec = read_colmap("my_model/sparse/0")                       # doctest: +SKIP
-    >>> write_transforms(rec, "ws/transforms.json", masks_dir=None)  # doctest: +SKIP
+    >>> write_transforms(rec, "ws/transforms.json", mask_prefix="masks")  # doctest: +SKIP
 """
 
 from __future__ import annotations
@@ -149,14 +149,15 @@ def write_transforms(
     rec,
     path: Path,
     image_prefix: str = "images",
-    masks_dir: Path | None = None,
+    mask_prefix: str | None = None,
     extra: dict | None = None,
 ) -> dict:
     """Write a nerfstudio ``transforms.json`` for the registered images of ``rec`` (single camera).
 
-    Frames get ``file_path`` ``images/<name>`` and, when ``masks_dir`` holds a mask of that name,
-    ``mask_path`` ``masks/<name>``. ``extra`` keys (e.g. ``applied_transform``, ``scale``) are added
-    at the top level. Returns the written dict.
+    Frames get ``file_path`` ``images/<name>`` and, with ``mask_prefix``, ``mask_path``
+    ``<mask_prefix>/<name>`` (where the segment stage writes the masks; nerfstudio reads them from
+    there). ``extra`` keys (e.g. ``applied_transform``, ``scale``) are added at the top level.
+    Returns the written dict.
     """
     images = registered_images(rec)
     cam_ids = {im.camera_id for im in images}
@@ -170,8 +171,8 @@ def write_transforms(
             "transform_matrix": (c2w_opencv(im) @ OPENCV_TO_OPENGL).tolist(),
             "colmap_im_id": int(im.image_id),
         }
-        if masks_dir is not None and (Path(masks_dir) / im.name).is_file():
-            f["mask_path"] = f"{Path(masks_dir).name}/{im.name}"
+        if mask_prefix is not None:
+            f["mask_path"] = f"{mask_prefix}/{im.name}"
         frames.append(f)
     data["frames"] = frames
     if extra:

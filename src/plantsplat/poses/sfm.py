@@ -1,17 +1,15 @@
-"""Structure from motion with pycolmap: SIFT features, matching, incremental or global mapping.
+"""Structure from motion with pycolmap: SIFT features, matching of chosen pairs, incremental or global mapping.
 
-Everything runs on the CPU through pycolmap (COLMAP 3.x/4.x bindings). COLMAP's own defaults are
-tuned for unordered photo collections; for a video circling a plant they split the model or
-register a wrong fragment (see issue 4), so :class:`SfmOptions` sets its own defaults: one shared
-camera with a phone-style radial distortion model, a capped number of SIFT features (enough for
-540x960 frames, and it makes exhaustive matching affordable), exhaustive matching for up to
-``exhaustive_max_frames`` frames and sequential matching with a wide quadratic window above.
+Everything runs on the CPU through pycolmap. Whole frames are used (the room's texture is what SfM
+lives on) and neither masks nor the cube are needed: which frames to match is chosen by
+:mod:`plantsplat.poses.pairs` (video neighbours and visually similar frames), then COLMAP's
+incremental mapper registers them.
 
 Example:
-    >>> from plantsplat.poses.sfm import SfmOptions, run_sfm
-    >>> res = run_sfm("ws/images", ["frame_00000.png", ...], "ws/colmap", SfmOptions())  # doctest: +SKIP
-    >>> res.models[0].num_reg_images()  # doctest: +SKIP
-    120
+    >>> opts = SfmOptions()
+    >>> db = extract_features(Path("ws/images"), names, Path("ws/.plantsplat/colmap"), opts)  # doctest: +SKIP
+    >>> match_pairs(db, Path("ws/.plantsplat/colmap"), [("a.png", "b.png")], opts, "video")    # doctest: +SKIP
+    >>> models = incremental(db, Path("ws/images"), Path("ws/.plantsplat/colmap/inc"), opts)   # doctest: +SKIP
 """
 
 from __future__ import annotations
@@ -19,11 +17,9 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
-import time
-from dataclasses import dataclass, field
+import sys
+from dataclasses import dataclass
 from pathlib import Path
-
-import numpy as np
 
 from plantsplat.errors import PlantsplatError
 from plantsplat.log import get_logger
@@ -35,51 +31,17 @@ CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV
 
 @dataclass
 class SfmOptions:
-    """Options of the SfM run (a subset of COLMAP's, with defaults suited to plant videos)."""
+    """COLMAP settings of one SfM run (filled from :class:`plantsplat.poses.PosesConfig`)."""
 
     camera_model: str = "RADIAL"
-    """COLMAP camera model shared by all frames (phones: RADIAL = f, cx, cy, k1, k2)."""
-    matcher: str = "auto"
-    """'guided' (video neighbours + frames that see the cube from similar directions), 'exhaustive',
-    'sequential', or 'auto' (guided when most frames see the cube, else exhaustive up to
-    exhaustive_max_frames frames, else sequential)."""
-    mapper: str = "auto"
-    """'incremental', 'global', or 'auto' (incremental, global when it registers more frames)."""
-    max_features: int = 4096
-    """SIFT features kept per frame."""
-    peak_threshold: float = 0.004
-    """SIFT peak threshold (COLMAP: 0.0067); lower finds more features on plain walls and small frames."""
+    max_features: int = 2048
     first_octave: int = -1
-    """SIFT first octave: -1 (COLMAP's default) upsamples the frame 2x to find small features; 0 is faster."""
+    peak_threshold: float = 0.004
     max_image_size: int = 1600
-    """Longest side used for feature extraction (pixels); larger frames are downscaled."""
-    exhaustive_max_frames: int = 80
-    """With matcher 'auto', frame count above which sequential matching is used."""
-    sequential_overlap: int = 20
-    """Sequential matching: neighbours matched on each side (plus quadratic steps beyond)."""
-    guided_window: int = 5
-    """Guided matching: video neighbours matched on each side (plus quadratic steps beyond)."""
-    guided_neighbours: int = 20
-    """Guided matching: frames matched per frame by closest viewing direction of the cube."""
-    guided_max_angle_deg: float = 45.0
-    """Guided matching: largest angle between two frames' directions from the cube."""
     ransac_max_trials: int = 2000
-    """Two-view geometric verification: RANSAC trials per pair (COLMAP: 10000)."""
     num_threads: int = 2
-    """CPU threads for extraction, matching and mapping."""
     seed: int = 0
-    """Random seed for COLMAP's RANSAC and mapper (repeatable runs)."""
     verbose: bool = False
-    """Show COLMAP's own log on stderr."""
-
-
-@dataclass
-class SfmResult:
-    models: list  # [pycolmap.Reconstruction], largest first
-    database: Path
-    matcher: str
-    mapper: str
-    timings: dict = field(default_factory=dict)
 
 
 @contextlib.contextmanager
@@ -90,8 +52,6 @@ def colmap_logging(verbose: bool):
     because some pycolmap calls (bundle adjustment) print their reports regardless of the level.
     Do not log from inside this block: it would be swallowed too.
     """
-    import sys
-
     import pycolmap
 
     if verbose:
@@ -116,89 +76,8 @@ def colmap_logging(verbose: bool):
         pycolmap.logging.verbose_level = old_v
 
 
-def choose_matcher(opts: SfmOptions, n: int, n_cube_poses: int = 0) -> str:
-    if opts.matcher == "auto":
-        if n_cube_poses >= 0.5 * n and n > 2 * opts.guided_window + 2:
-            return "guided"
-        return "exhaustive" if n <= opts.exhaustive_max_frames else "sequential"
-    if opts.matcher not in ("guided", "exhaustive", "sequential"):
-        raise PlantsplatError(f"--matcher {opts.matcher!r}: use guided, exhaustive, sequential or auto", exit_code=2)
-    return opts.matcher
-
-
-def view_directions(
-    detections: dict[str, dict[int, np.ndarray]], image_size: tuple[int, int], cube
-) -> dict[str, np.ndarray]:
-    """Unit direction from the cube to the camera (cube frame) for every frame whose markers give a pose.
-
-    The intrinsics are not known yet: a focal length of the image's longest side is assumed, which
-    changes the distance far more than the direction.
-    """
-    from plantsplat.cube import cube_pose
-
-    w, h = image_size
-    f = float(max(w, h))
-    K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
-    out = {}
-    for name, det in detections.items():
-        res = cube_pose(det, K, None, cube)
-        if res is None:
-            continue
-        T = res[0]  # cam_from_cube
-        c = -T[:3, :3].T @ T[:3, 3]  # camera centre in the cube frame
-        c = c - np.array([0.0, 0.0, cube.size / 2])
-        if np.linalg.norm(c) > 0:
-            out[name] = c / np.linalg.norm(c)
-    return out
-
-
-def guided_pairs(names: list[str], directions: dict[str, np.ndarray], opts: SfmOptions) -> list[tuple[str, str]]:
-    """Image pairs to match: video neighbours (window + quadratic steps) and cube-guided neighbours.
-
-    Each frame with a cube direction is paired with up to ``guided_neighbours`` frames whose
-    direction from the cube is within ``guided_max_angle_deg``, which links the rings of an orbit
-    capture and closes its loops without matching every pair.
-    """
-    n = len(names)
-    pairs: set[tuple[int, int]] = set()
-    steps = set(range(1, opts.guided_window + 1))
-    k = 1
-    while 2**k < n:
-        steps.add(2**k + opts.guided_window - 1)
-        k += 1
-    for i in range(n):
-        # frames that do not see the cube only have their video neighbours: give them a wider window
-        wide = names[i] not in directions or (i + 1 < n and names[i + 1] not in directions)
-        for d in steps | (set(range(1, 2 * opts.guided_window + 1)) if wide else set()):
-            if i + d < n:
-                pairs.add((i, i + d))
-    idx = [i for i, nm in enumerate(names) if nm in directions]
-    if len(idx) > 1:
-        D = np.array([directions[names[i]] for i in idx])  # [M, 3]
-        cos = np.clip(D @ D.T, -1.0, 1.0)  # [M, M]
-        np.fill_diagonal(cos, -2.0)
-        cmin = np.cos(np.radians(opts.guided_max_angle_deg))
-        for a, i in enumerate(idx):
-            order = np.argsort(-cos[a])[: opts.guided_neighbours]
-            for b in order:
-                if cos[a, b] >= cmin:
-                    j = idx[b]
-                    pairs.add((min(i, j), max(i, j)))
-    return [(names[i], names[j]) for i, j in sorted(pairs)]
-
-
-def extract_and_match(
-    image_dir: Path,
-    names: list[str],
-    work_dir: Path,
-    opts: SfmOptions,
-    directions: dict[str, np.ndarray] | None = None,
-) -> tuple[Path, str, dict]:
-    """Extract SIFT features and match them into ``work_dir/database.db`` (rebuilt from scratch).
-
-    ``directions`` (from :func:`view_directions`) enables guided matching. Returns
-    ``(database path, matcher used, timings)``; timings include ``pairs``, the number of pairs matched.
-    """
+def extract_features(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions) -> Path:
+    """SIFT features of ``names`` (one shared camera) into ``work_dir/database.db``, rebuilt from scratch."""
     import pycolmap
 
     if opts.camera_model not in CAMERA_MODELS:
@@ -207,11 +86,7 @@ def extract_and_match(
     db = work_dir / "database.db"
     for p in (db, work_dir / "database.db-wal", work_dir / "database.db-shm"):
         p.unlink(missing_ok=True)
-    timings: dict[str, float] = {}
-    device = pycolmap.Device.cpu
     pycolmap.set_random_seed(opts.seed)
-    t = time.perf_counter()
-    log.info("SfM: extracting SIFT features from %d frames", len(names))
     ext = pycolmap.FeatureExtractionOptions()
     ext.num_threads = opts.num_threads
     ext.max_image_size = opts.max_image_size
@@ -221,128 +96,9 @@ def extract_and_match(
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = opts.camera_model
     with colmap_logging(opts.verbose):
-        pycolmap.extract_features(
-            db,
-            image_dir,
-            image_names=names,
-            camera_mode=pycolmap.CameraMode.SINGLE,
-            reader_options=reader,
-            extraction_options=ext,
-            device=device,
-        )
-    timings["extract_s"] = time.perf_counter() - t
-
-    directions = directions or {}
-    matcher = choose_matcher(opts, len(names), len(directions))
-    t = time.perf_counter()
-    mopts, verif = _matching_options(opts)
-    n = len(names)
-    if matcher == "guided":
-        pairs = guided_pairs(names, directions, opts)
-        timings["pairs"] = len(pairs)
-        pair_file = work_dir / "pairs.txt"
-        pair_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
-    elif matcher == "exhaustive":
-        timings["pairs"] = n * (n - 1) // 2
-    log.info("SfM: %s matching%s", matcher, f" ({timings['pairs']} pairs)" if "pairs" in timings else "")
-    with colmap_logging(opts.verbose):
-        if matcher == "guided":
-            pairing = pycolmap.ImportedPairingOptions()
-            pairing.match_list_path = str(pair_file)
-            pycolmap.match_image_pairs(
-                db, matching_options=mopts, pairing_options=pairing, verification_options=verif, device=device
-            )
-        elif matcher == "exhaustive":
-            pycolmap.match_exhaustive(db, matching_options=mopts, verification_options=verif, device=device)
-        else:
-            pairing = pycolmap.SequentialPairingOptions()
-            pairing.overlap = opts.sequential_overlap
-            pairing.quadratic_overlap = True
-            pairing.loop_detection = False  # needs a vocabulary tree download
-            pycolmap.match_sequential(
-                db, matching_options=mopts, pairing_options=pairing, verification_options=verif, device=device
-            )
-    timings["match_s"] = time.perf_counter() - t
-    return db, matcher, timings
-
-
-def incremental(db: Path, image_dir: Path, out_dir: Path, opts: SfmOptions, input_path: Path | None = None) -> list:
-    """COLMAP incremental mapping; returns the models found, largest first."""
-    import pycolmap
-
-    if out_dir.exists():
-        shutil.rmtree(out_dir)
-    out_dir.mkdir(parents=True)
-    o = pycolmap.IncrementalPipelineOptions()
-    o.num_threads = opts.num_threads
-    o.random_seed = opts.seed
-    o.mapper.random_seed = opts.seed
-    o.triangulation.random_seed = opts.seed
-    o.min_model_size = 3
-    # orbits around a small object: neighbouring frames are close, initial pairs need less parallax
-    o.mapper.init_min_tri_angle = 8.0
-    with colmap_logging(opts.verbose):
-        models = pycolmap.incremental_mapping(
-            db, image_dir, out_dir, options=o, input_path=str(input_path) if input_path else ""
-        )
-    return sorted(models.values(), key=lambda r: -r.num_reg_images())
-
-
-def global_sfm(db: Path, image_dir: Path, out_dir: Path, opts: SfmOptions) -> list:
-    """GLOMAP-style global mapping (rotation averaging + global positioning + BA); largest first."""
-    import pycolmap
-
-    if out_dir.exists():
-        shutil.rmtree(out_dir)
-    out_dir.mkdir(parents=True)
-    o = pycolmap.GlobalPipelineOptions()
-    o.num_threads = opts.num_threads
-    o.random_seed = opts.seed
-    o.mapper.num_threads = opts.num_threads
-    o.mapper.random_seed = opts.seed
-    o.mapper.global_positioning.use_gpu = False
-    o.mapper.bundle_adjustment.ceres.use_gpu = False
-    with colmap_logging(opts.verbose):
-        models = pycolmap.global_mapping(db, image_dir, out_dir, options=o)
-    return sorted(models.values(), key=lambda r: -r.num_reg_images())
-
-
-def refine(rec, db: Path, image_dir: Path, work_dir: Path, opts: SfmOptions, retriangulate: bool = True,
-           adjust: bool = True):
-    """Re-triangulate all matches with the current poses, then a full bundle adjustment.
-
-    With ``adjust=False`` the poses and intrinsics are kept as they are: only the points are
-    triangulated (and refined). Returns the refined reconstruction (a new object when re-triangulated).
-    """
-    import pycolmap
-
-    with colmap_logging(opts.verbose):
-        if retriangulate:
-            out = work_dir / "retriangulated"
-            if out.exists():
-                shutil.rmtree(out)
-            out.mkdir(parents=True)
-            o = pycolmap.IncrementalPipelineOptions()
-            o.num_threads = opts.num_threads
-            o.random_seed = opts.seed
-            rec = pycolmap.triangulate_points(rec, db, image_dir, out, clear_points=True, options=o, refine_intrinsics=adjust)
-        if not adjust:
-            return rec
-        ba = pycolmap.BundleAdjustmentOptions()
-        ba.refine_focal_length = True
-        ba.refine_extra_params = True
-        ba.refine_principal_point = False
-        ba.ceres.use_gpu = False
-        ba.ceres.solver_options.num_threads = opts.num_threads
-        ba.ceres.solver_options.max_num_iterations = 100
-        ba.print_summary = False
-        pycolmap.bundle_adjustment(rec, ba)
-    return rec
-
-
-def n_threads_env(n: int) -> None:
-    """Cap OpenMP/BLAS threads used inside COLMAP's dependencies."""
-    os.environ.setdefault("OMP_NUM_THREADS", str(n))
+        pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu)
+    return db
 
 
 def _matching_options(opts: SfmOptions):
@@ -359,46 +115,141 @@ def _matching_options(opts: SfmOptions):
 
 
 def match_pairs(db: Path, work_dir: Path, pairs: list[tuple[str, str]], opts: SfmOptions, tag: str) -> None:
-    """Match and verify extra image ``pairs`` into ``db`` (pairs matched before are skipped by COLMAP)."""
+    """Match and verify image ``pairs`` (names) into ``db``; pairs matched before are skipped by COLMAP."""
     import pycolmap
 
+    if not pairs:
+        return
     pair_file = work_dir / f"pairs_{tag}.txt"
     pair_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
     mopts, verif = _matching_options(opts)
     pairing = pycolmap.ImportedPairingOptions()
     pairing.match_list_path = str(pair_file)
     with colmap_logging(opts.verbose):
-        pycolmap.match_image_pairs(
-            db, matching_options=mopts, pairing_options=pairing, verification_options=verif, device=pycolmap.Device.cpu
-        )
+        pycolmap.match_image_pairs(db, matching_options=mopts, pairing_options=pairing, verification_options=verif,
+                                   device=pycolmap.Device.cpu)
 
 
-def pairs_for_missing(names: list[str], rec, k: int = 12, window: int = 3) -> list[tuple[str, str]]:
-    """Pairs linking each unregistered frame to registered frames near its registered video neighbours.
+def match_exhaustive(db: Path, opts: SfmOptions) -> None:
+    """Match and verify every pair of frames in ``db``."""
+    import pycolmap
 
-    For a missing frame, the registered frames closest in video order (up to ``window`` on each
-    side) stand in for its unknown position; the ``k`` registered cameras nearest to each of them
-    (camera centres in the model) are paired with it.
-    """
-    reg = {im.name: np.asarray(im.projection_center()) for im in rec.images.values() if im.has_pose}
-    reg_names = [n for n in names if n in reg]
-    if not reg_names:
-        return []
-    C = np.array([reg[n] for n in reg_names])  # [R, 3]
-    order = {n: i for i, n in enumerate(names)}
-    pairs = set()
-    for i, n in enumerate(names):
-        if n in reg:
+    mopts, verif = _matching_options(opts)
+    with colmap_logging(opts.verbose):
+        pycolmap.match_exhaustive(db, matching_options=mopts, verification_options=verif, device=pycolmap.Device.cpu)
+
+
+def _fresh(out_dir: Path) -> None:
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    out_dir.mkdir(parents=True)
+
+
+def incremental(db: Path, image_dir: Path, out_dir: Path, opts: SfmOptions, input_path: Path | None = None) -> list:
+    """COLMAP incremental mapping (continuing the model at ``input_path`` if given); models found, largest first."""
+    import pycolmap
+
+    _fresh(out_dir)
+    o = pycolmap.IncrementalPipelineOptions()
+    o.num_threads = opts.num_threads
+    o.random_seed = opts.seed
+    o.mapper.random_seed = opts.seed
+    o.triangulation.random_seed = opts.seed
+    o.min_model_size = 3
+    with colmap_logging(opts.verbose):
+        models = pycolmap.incremental_mapping(db, image_dir, out_dir, options=o,
+                                              input_path=str(input_path) if input_path else "")
+    return sorted(models.values(), key=lambda r: -r.num_reg_images())
+
+
+def global_mapping(db: Path, image_dir: Path, out_dir: Path, opts: SfmOptions) -> list:
+    """GLOMAP-style global mapping (rotation averaging, global positioning, bundle adjustment); largest first."""
+    import pycolmap
+
+    _fresh(out_dir)
+    o = pycolmap.GlobalPipelineOptions()
+    o.num_threads = opts.num_threads
+    o.random_seed = opts.seed
+    o.mapper.num_threads = opts.num_threads
+    o.mapper.random_seed = opts.seed
+    o.mapper.global_positioning.use_gpu = False
+    o.mapper.bundle_adjustment.ceres.use_gpu = False
+    with colmap_logging(opts.verbose):
+        models = pycolmap.global_mapping(db, image_dir, out_dir, options=o)
+    return sorted(models.values(), key=lambda r: -r.num_reg_images())
+
+
+def write_model(rec, out_dir: Path, verbose: bool = False) -> None:
+    """Write a model as COLMAP binary into a fresh ``out_dir`` (a seed for continued mapping)."""
+    _fresh(out_dir)
+    with colmap_logging(verbose):
+        rec.write_binary(str(out_dir))
+
+
+def n_threads_env(n: int) -> None:
+    """Cap OpenMP/BLAS threads used inside COLMAP's dependencies."""
+    os.environ.setdefault("OMP_NUM_THREADS", str(n))
+
+
+def merge_models(models: list, db: Path, image_dir: Path, work_dir: Path, opts: SfmOptions):
+    """One model from the pieces incremental mapping left: each piece that shares frames with the first is
+    aligned onto it by the reprojections of their common points (COLMAP's model alignment), its other frames
+    join, then every match is triangulated again and the whole is bundle-adjusted. Returns the merged model,
+    or None when no piece could be aligned."""
+    import pycolmap
+
+    base = models[0]
+    poses = {im.name: im.cam_from_world() for im in base.images.values() if im.has_pose}
+    joined = 0
+    for other in models[1:]:
+        common = {im.name for im in other.images.values() if im.has_pose} & set(poses)
+        if len(common) < 3:
             continue
-        before = [m for m in names[max(0, i - 4 * window) : i] if m in reg][-window:]
-        after = [m for m in names[i + 1 : i + 1 + 4 * window] if m in reg][:window]
-        for m in before + after:
-            d = np.linalg.norm(C - reg[m], axis=1)
-            for j in np.argsort(d)[:k]:
-                a, b = sorted((n, reg_names[j]), key=order.get)
-                pairs.add((a, b))
-        for m in names[max(0, i - 2 * window) : i + 2 * window + 1]:  # its video neighbours, registered or not
-            if m != n:
-                a, b = sorted((n, m), key=order.get)
-                pairs.add((a, b))
-    return sorted(pairs, key=lambda p: (order[p[0]], order[p[1]]))
+        with colmap_logging(opts.verbose):
+            sim = pycolmap.align_reconstructions_via_reprojections(other, base)
+        if sim is None:
+            continue
+        moved = pycolmap.Reconstruction(other)
+        moved.transform(sim)
+        for im in moved.images.values():
+            if im.has_pose and im.name not in poses:
+                poses[im.name] = im.cam_from_world()
+                joined += 1
+    if not joined:
+        return None
+    return retriangulate(base, poses, db, image_dir, work_dir, opts)
+
+
+def retriangulate(like, poses: dict, db: Path, image_dir: Path, work_dir: Path, opts: SfmOptions):
+    """A model of the frames in ``poses`` (name -> cam_from_world) with the camera of ``like``: every match in
+    ``db`` triangulated, then a bundle adjustment of poses, points and intrinsics."""
+    import numpy as np
+    import pycolmap
+
+    with pycolmap.Database.open(str(db)) as d:
+        ids = {im.name: im.image_id for im in d.read_all_images()}
+        cam_id = d.read_all_cameras()[0].camera_id
+    cam = like.cameras[next(iter(like.cameras))]
+    rec = pycolmap.Reconstruction()
+    new_cam = pycolmap.Camera.create_from_model_name(cam_id, cam.model.name, cam.focal_length_x, cam.width, cam.height)
+    new_cam.params = cam.params
+    rec.add_camera_with_trivial_rig(new_cam)
+    for name, pose in poses.items():
+        im = pycolmap.Image(name=name, keypoints=np.zeros((0, 2)), camera_id=cam_id, image_id=ids[name])
+        rec.add_image_with_trivial_frame(im, pose)
+    _fresh(work_dir)
+    o = pycolmap.IncrementalPipelineOptions()
+    o.num_threads = opts.num_threads
+    o.random_seed = opts.seed
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.refine_focal_length = True
+    ba.refine_extra_params = True
+    ba.refine_principal_point = False
+    ba.print_summary = False
+    ba.ceres.use_gpu = False
+    ba.ceres.solver_options.num_threads = opts.num_threads
+    with colmap_logging(opts.verbose):
+        rec = pycolmap.triangulate_points(rec, db, image_dir, work_dir, clear_points=True, options=o,
+                                          refine_intrinsics=True)
+        pycolmap.bundle_adjustment(rec, ba)
+    return rec

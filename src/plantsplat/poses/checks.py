@@ -1,0 +1,201 @@
+"""Checks of a registered model against what the capture itself says.
+
+Each check has a name, a measured value and the threshold it is held to (:class:`Check`); the poses
+stage records them all in ``poses.json`` and fails when one that matters fails. What they look at:
+
+- the camera's path through video time (:func:`path_deviations`, :func:`off_path`): a phone moves
+  smoothly around the plant, so each camera must lie where its video neighbours put it on their
+  orbit. Deviations are measured in units of the neighbours' own spacing (position) and turn
+  (rotation), so no unit or scene size enters;
+- the cube: its markers must reproject where they are detected (the calibration's residuals), two
+  halves of the video must give the same scale, and the SfM points on the cube's faces must lie on
+  the faces' planes (:func:`face_offsets`).
+
+Example:
+    >>> Check("registered", 118 / 120, 0.8, ">=").passed
+    True
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from plantsplat.log import get_logger
+
+log = get_logger(__name__)
+
+
+@dataclass
+class Check:
+    """One named check: ``value`` compared with ``threshold`` by ``op`` (``>=`` or ``<=``)."""
+
+    name: str
+    value: float | None
+    threshold: float
+    op: str = "<="
+    detail: str = ""
+
+    @property
+    def passed(self) -> bool:
+        if self.value is None or not np.isfinite(self.value):
+            return False
+        return self.value >= self.threshold if self.op == ">=" else self.value <= self.threshold
+
+    def as_dict(self) -> dict:
+        v = None if self.value is None else round(float(self.value), 4)
+        return {"name": self.name, "value": v, "threshold": self.threshold, "op": self.op, "passed": self.passed,
+                "detail": self.detail}
+
+    def line(self) -> str:
+        v = "n/a" if self.value is None else f"{self.value:.3g}"
+        return f"{self.name} {v} (needs {self.op} {self.threshold:g}){': ' + self.detail if self.detail else ''}"
+
+
+def _rotvec(R: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(R).as_rotvec()
+
+
+def _angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.linalg.norm(_rotvec(R))))
+
+
+def orbit_centre(c2w: list[np.ndarray]) -> np.ndarray | None:
+    """The point closest (least squares) to every camera's optical axis: what the cameras circle. ``[3]``
+
+    ``c2w``: camera-to-world poses (OpenCV axes: the optical axis is the third column). None when the
+    axes are (nearly) parallel.
+    """
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for M in c2w:
+        d = M[:3, 2] / np.linalg.norm(M[:3, 2])
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ M[:3, 3]
+    if len(c2w) < 3 or np.linalg.cond(A) > 1e8:
+        return None
+    return np.linalg.solve(A, b)
+
+
+def _predict(c2w: dict, a: str, b: str, ta: float, tb: float, t: float,
+             centre: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Pose at time ``t`` from the poses of frames ``a`` (time ``ta``) and ``b`` (``tb``), inter- or extrapolated.
+
+    The camera is moved as it moves around an orbit: its rotation turns at a constant rate and the
+    orbit's ``centre``, seen from the camera, moves linearly; so a gap of several frames is bridged
+    along the arc, not its chord (straight lines without a centre). Returns ``(centre of the camera [3],
+    rotation [3, 3], spacing of a and b, their turn in degrees)``.
+    """
+    from scipy.spatial.transform import Rotation
+
+    f = (t - ta) / (tb - ta)
+    Ca, Cb = c2w[a][:3, 3], c2w[b][:3, 3]
+    Ra, Rb = c2w[a][:3, :3], c2w[b][:3, :3]
+    rel = _rotvec(Ra.T @ Rb)
+    R = Ra @ Rotation.from_rotvec(f * rel).as_matrix()
+    if centre is None:
+        C = Ca + f * (Cb - Ca)
+    else:
+        oa, ob = Ra.T @ (centre - Ca), Rb.T @ (centre - Cb)  # the orbit's centre in each camera
+        C = centre - R @ (oa + f * (ob - oa))
+    return C, R, float(np.linalg.norm(Cb - Ca)), float(np.degrees(np.linalg.norm(rel)))
+
+
+def _path_errors(c2w: dict[str, np.ndarray], names: list[str], times: list[float]) -> dict[str, list[tuple]]:
+    """Per registered frame, for each way its video neighbours predict it: ``(centre error, centre step,
+    rotation error in degrees, rotation step in degrees)``; the steps are the motion from the nearer neighbour."""
+    reg = [(n, t) for n, t in zip(names, times) if n in c2w]
+    centre = orbit_centre([c2w[n] for n, _ in reg])
+    out: dict[str, list[tuple]] = {}
+    for k, (n, t) in enumerate(reg):
+        options = []
+        if 0 < k < len(reg) - 1:
+            options.append((reg[k - 1], reg[k + 1]))
+        if k >= 2:
+            options.append((reg[k - 2], reg[k - 1]))
+        if k + 2 < len(reg):
+            options.append((reg[k + 1], reg[k + 2]))
+        rows = []
+        for (a, ta), (b, tb) in options:
+            C, R, spacing, turn = _predict(c2w, a, b, ta, tb, t, centre)
+            near = min(abs(t - ta), abs(t - tb)) / max(abs(tb - ta), 1e-9)
+            rows.append((float(np.linalg.norm(c2w[n][:3, 3] - C)), spacing * near,
+                         _angle_deg(R.T @ c2w[n][:3, :3]), turn * near))
+        if rows:
+            out[n] = rows
+    return out
+
+
+def path_deviations(c2w: dict[str, np.ndarray], names: list[str], times: list[float],
+                    min_turn_deg: float = 1.0, jitter: float = 3.0, turn_slack: float = 2.0) -> dict[str, float]:
+    """How far each camera lies from the path of its video neighbours, in units of the step to them.
+
+    ``c2w``: camera-to-world poses of the registered frames; ``names`` in video order with ``times``
+    (source frame numbers, or positions). Each frame is predicted from its nearest registered frames
+    on either side (interpolation), or from the two nearest on one side (extrapolation), moving along
+    their orbit (:func:`_predict`); the best agreeing prediction counts, so the first frame of a new
+    ring, a step away from the last, is judged by the frames after it. A frame's deviation is the
+    larger of its centre's distance from the prediction over the step from its nearer neighbour
+    (their spacing, pro rata of time) and its rotation's angle from the prediction over that step's
+    turn, divided by ``turn_slack``: a hand-held phone (or a scanner's head) turns less evenly than it
+    moves, while a wrongly posed frame is off in both. A hand-held camera also shakes: a step is taken
+    as at least ``jitter`` times the capture's median error (centre and rotation apart; and at least
+    ``min_turn_deg``), so slow steps do not make the shake look large. Frames with fewer than two
+    registered neighbours are not judged.
+    """
+    errors = _path_errors(c2w, names, times)
+    if not errors:
+        return {}
+
+    def dev(dc, sc, dr, sr, floor_c=0.0, floor_r=min_turn_deg):
+        return max(dc / max(sc, floor_c, 1e-12), dr / max(sr, floor_r) / turn_slack)
+
+    best = [min(rows, key=lambda r: dev(*r)) for rows in errors.values()]
+    floor_c = jitter * float(np.median([r[0] for r in best]))
+    floor_r = max(min_turn_deg, jitter * float(np.median([r[2] for r in best])))
+    return {n: min(dev(*r, floor_c, floor_r) for r in rows) for n, rows in errors.items()}
+
+
+def off_path(c2w: dict[str, np.ndarray], names: list[str], times: list[float], limit: float,
+             max_share: float = 0.2) -> list[str]:
+    """Frames whose camera leaves the path through its video neighbours by more than ``limit`` (see
+    :func:`path_deviations`), worst first and judged again without it, up to ``max_share`` of the frames."""
+    c2w = dict(c2w)
+    dropped: list[str] = []
+    while len(dropped) < max_share * len(names):
+        dev = path_deviations(c2w, names, times)
+        if not dev:
+            break
+        worst = max(dev, key=dev.get)
+        if dev[worst] <= limit:
+            break
+        dropped.append(worst)
+        del c2w[worst]
+    return dropped
+
+
+def face_offsets(points: np.ndarray, cube, band: float = 0.6, margin: float = 0.7, min_points: int = 10) -> dict[str, tuple[float, int]]:
+    """Where SfM points near each face of the cube lie, along the face's normal (cube frame, cm).
+
+    Points within ``band`` cm of a face's plane and at least ``margin`` cm inside its edges (a
+    silhouette's points are not on the face) are kept; for each face with ``min_points`` of them the
+    result is ``(median signed distance from the plane, count)``. On a right model the medians are
+    near 0; a wrong scale or pose of the cube moves whole faces.
+    """
+    from plantsplat.cube import FACE_NAMES
+
+    out = {}
+    for face in FACE_NAMES:
+        if face == "bottom":
+            continue
+        c, n, r, u = cube.face_frame(face)
+        d = (points - c) @ n  # [P]
+        inside = np.maximum(np.abs((points - c) @ r), np.abs((points - c) @ u)) < cube.size / 2 - margin
+        on = (np.abs(d) < band) & inside
+        if on.sum() >= min_points:
+            out[face] = (float(np.median(d[on])), int(on.sum()))
+    return out
