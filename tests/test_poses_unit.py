@@ -298,3 +298,25 @@ def test_checks_say_what_failed():
     assert ok.passed and not bad.passed and not Check("x", None, 1.0).passed
     assert bad.line() == "cube_reprojection_px 7.2 (needs <= 3): median"
     assert bad.as_dict()["passed"] is False
+
+
+def test_object_scale_measures_the_model_near_the_object():
+    """Tracks seen by true cameras: a model whose object is 2 % too large (cameras placed anywhere) measures 2 %."""
+    from plantsplat.poses.evaluate import object_scale
+
+    rng = np.random.default_rng(5)
+    gt = orbit(n=24)
+    rec = make_rec(gt)
+    K = np.array([[F, 0, W / 2], [0, F, H / 2], [0, 0, 1.0]])
+    pts = rng.uniform([-15, -15, 0], [15, 15, 25], (200, 3))  # the object around the axis
+    by_name = {im.name: im for im in rec.images.values()}
+    for X in pts:
+        track = pycolmap.Track()
+        for name, c2w in gt.items():
+            w2c = np.linalg.inv(c2w)
+            uv = K @ (w2c[:3, :3] @ X + w2c[:3, 3])
+            im = by_name[name]
+            im.points2D.append(pycolmap.Point2D(np.asarray(uv[:2] / uv[2]).reshape(2, 1)))
+            track.add_element(im.image_id, len(im.points2D) - 1)
+        rec.add_point3D((1.02 * X).reshape(3, 1), track, np.zeros(3, np.uint8))  # the model's point: 2 % out
+    assert object_scale(rec, gt, K) == pytest.approx(1 / 1.02, rel=1e-6)

@@ -100,6 +100,50 @@ def reference_cameras(ground_truth: dict, source_index: dict[str, int]) -> dict[
     return {name: cube_world @ np.asarray(frames[i]["c2w"], dtype=np.float64) for name, i in source_index.items()}
 
 
+def true_intrinsics(ground_truth: dict) -> np.ndarray:
+    """The pinhole matrix ``K [3, 3]`` of a capture with ground truth (synth ``intrinsics`` or foreign ``camera.K``)."""
+    if "intrinsics" in ground_truth:
+        i = ground_truth["intrinsics"]
+        return np.array([[i["fx"], 0.0, i["cx"]], [0.0, i["fy"], i["cy"]], [0.0, 0.0, 1.0]])
+    return np.asarray(ground_truth["camera"]["K"], dtype=np.float64)
+
+
+def object_scale(rec, ref: dict[str, np.ndarray], K: np.ndarray, radius: float = 30.0, min_views: int = 4) -> float | None:
+    """Scale of a calibrated model near the object, against the truth: ``true / estimated`` (1 = right).
+
+    Every SfM track seen in ``min_views`` frames is triangulated again from its raw pixels with the true
+    cameras ``ref`` (camera-to-world, OpenCV axes) and intrinsics ``K`` (no distortion); the tracks
+    within ``radius`` of the axis the cameras circle are fitted by a similarity (Umeyama on the 80 %
+    that agree best) onto their true places. This is the scale that measurements of the plant and the
+    cube inherit. The scale of a fit to the camera centres (:func:`compare_poses`) also holds how far
+    the cameras were placed, which a focal length slightly off changes without changing the object.
+    """
+    P = {im.image_id: K @ np.linalg.inv(ref[im.name])[:3] for im in rec.images.values() if im.has_pose and im.name in ref}
+    est, true = [], []
+    for p in rec.points3D.values():
+        rows = []
+        for el in p.track.elements:
+            if el.image_id in P:
+                x, y = np.asarray(rec.images[el.image_id].points2D[el.point2D_idx].xy, dtype=np.float64)
+                A = P[el.image_id]
+                rows += [x * A[2] - A[0], y * A[2] - A[1]]
+        if len(rows) >= 2 * min_views:
+            X = np.linalg.svd(np.array(rows))[2][-1]
+            est.append(p.xyz)
+            true.append(X[:3] / X[3])
+    if len(est) < 20:
+        return None
+    est, true = np.array(est), np.array(true)
+    axis = np.mean([M[:2, 3] for M in ref.values()], axis=0)
+    near = np.linalg.norm(true[:, :2] - axis, axis=1) < radius
+    if near.sum() < 20:
+        return None
+    s, R, t = umeyama(est[near], true[near])
+    res = np.linalg.norm(s * est[near] @ R.T + t - true[near], axis=1)
+    keep = res <= np.percentile(res, 80)
+    return float(umeyama(est[near][keep], true[near][keep])[0])
+
+
 def synth_reference(ground_truth: dict) -> dict[str, np.ndarray]:
     """Ground-truth cameras of a ``plantsplat synth`` capture, in its cube frame (our world frame).
 
