@@ -7,8 +7,8 @@ Gaussians and peak memory, plus machine info (timings on a shared machine are no
 
 Two PBR figures: `pbr` clips the render with the test frame's own (here: ground-truth) mask, an upper
 bound; `pbr_segmented` is the paper's PBR, the renders segmented after training (the paper: SAM-2;
-here: the classic segmenter). Its fair opponent is `object_segmented` (synthetic captures, unless
---no-segmented): the object model trained on the classic segmenter's masks of the frames, as the paper
+here: plantsplat's 3d segmenter). Its fair opponent is `object_segmented` (synthetic captures, unless
+--no-segmented): the object model trained on plantsplat's segmenter's masks of the frames, as the paper
 trains on SAM-2's, scored against the same ground-truth-masked test frames as every other row.
 
     .venv/bin/python benchmarks/bench_train.py                       # the issue's setting (slow)
@@ -148,12 +148,13 @@ def run_modes(ws: Workspace, iterations: int | None, max_res: int | None, modes=
 
 
 def object_on_segmented_masks(ws: Workspace, iterations: int | None, max_res: int | None) -> dict:
-    """The paper's setting with the classic segmenter in place of SAM-2: a copy of ``ws`` (same frames and poses) whose
+    """The paper's setting with plantsplat's segmenter in place of SAM-2: a copy of ``ws`` (same frames and poses) whose
     masks come from ``plantsplat segment``, an object model trained on it, scored on ``ws``'s test views against their
     ground-truth masks (as the other rows). Also the segmenter's mask IoU against the truth over all frames."""
     import cv2
 
     from plantsplat.segment import mask_iou, segment_workspace
+    from plantsplat.segment.config import SegmentConfig
     from plantsplat.train.evaluate import evaluate_workspace
     from plantsplat.train.trainer import TrainConfig, train_workspace
 
@@ -161,7 +162,7 @@ def object_on_segmented_masks(ws: Workspace, iterations: int | None, max_res: in
     shutil.copytree(ws.root, seg.root, ignore=lambda d, names: [n for n in names if n.startswith(("train_", "metrics_"))
                                                                   or n in ("masks", "rgba")])
     t0 = time.perf_counter()
-    segment_workspace(seg, preview=False)
+    segment_workspace(seg, SegmentConfig(preview=False))
     seg_seconds = time.perf_counter() - t0
     ious = []
     for name in ws.image_names():
@@ -203,7 +204,7 @@ def main() -> None:
     ap.add_argument("--modes", nargs="+", choices=("object", "full"), default=["object", "full"],
                     help="which models to train (PBR needs full)")
     ap.add_argument("--no-segmented", action="store_true",
-                    help="skip the object model trained on the classic segmenter's masks (object_segmented)")
+                    help="skip the object model trained on the segmenter's masks (object_segmented)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "train.json")
     args = ap.parse_args()
     setup_logging()

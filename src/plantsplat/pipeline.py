@@ -43,10 +43,12 @@ class RunOptions:
     """Frames to keep from the video (the paper: 100-150)."""
     max_size: int = 960
     """Longest side of the working images, in pixels (the paper trains at 1/4 of 4K)."""
-    segment_backend: Literal["classic", "sam2"] = "classic"
-    """Segmenter: `classic` (offline, no model download) or `sam2` (needs --sam2-checkpoint)."""
+    segment_backend: Literal["3d", "sam2"] = "3d"
+    """Segmenter: `3d` (the plant decided in 3D, offline, no weights) or `sam2` (needs --sam2-checkpoint)."""
     sam2_checkpoint: Path | None = None
     """SAM-2 checkpoint file for `--segment-backend sam2`."""
+    import_masks: Path | None = None
+    """Use your own masks from this folder instead of segmenting (one per frame, named like the frames)."""
     matcher: Literal["auto", "retrieval", "exhaustive"] = "auto"
     """COLMAP feature matching (`auto`: every pair for short captures, else video neighbours and retrieval)."""
     import_colmap: Path | None = None
@@ -207,8 +209,10 @@ def _stage_frames(ws: Workspace, source: Path | None, opts: RunOptions) -> dict:
 
 def _stage_segment(ws: Workspace, source: Path | None, opts: RunOptions) -> dict:
     from plantsplat.segment import segment_workspace
+    from plantsplat.segment.config import SegmentConfig
 
-    return segment_workspace(ws, backend=opts.segment_backend, sam2_checkpoint=opts.sam2_checkpoint)
+    return segment_workspace(ws, SegmentConfig(backend=opts.segment_backend, sam2_checkpoint=opts.sam2_checkpoint,
+                                               import_masks=opts.import_masks, seed=opts.seed))
 
 
 def _stage_poses(ws: Workspace, source: Path | None, opts: RunOptions) -> dict:
@@ -272,7 +276,7 @@ def pipeline_stages(opts: RunOptions) -> list[Stage]:
     stages = [
         Stage("frames", _stage_frames, lambda w: [w.frames_json, w.images_dir], ("num_frames", "max_size")),
         Stage("poses", _stage_poses, lambda w: [w.sparse_dir, w.transforms_json, w.poses_json, w.markers_json], ("matcher", "import_colmap", "import_transforms")),
-        Stage("segment", _stage_segment, lambda w: [w.masks_dir, w.segment_json], ("segment_backend", "sam2_checkpoint")),
+        Stage("segment", _stage_segment, lambda w: [w.masks_dir, w.segment_json], ("segment_backend", "sam2_checkpoint", "import_masks", "seed")),
         Stage("train", _stage_train, lambda w: [w.train_dir, w.metrics_json], ("mode", "backend", "iterations", "seed")),
         Stage("export", _stage_export, lambda w: [w.splat_ply, w.points_ply]),
         Stage("traits", _stage_traits, lambda w: [w.traits_json, w.traits_csv]),

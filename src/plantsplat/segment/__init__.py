@@ -1,23 +1,22 @@
-"""Foreground segmentation (plant + cube) of a workspace's frames: masks, RGBA images, preview.
+"""Foreground segmentation (plant + cube) of a workspace's frames: masks, RGBA images, a preview, a report.
 
-Backends:
+Runs after the poses stage: every registered frame has a calibrated camera. Backends:
 
-- ``classic`` (default): offline, model-free; plant colour models, the cube's exact silhouette from
-  its markers and a multi-view visual hull that tells the plant from green things elsewhere
-  (:mod:`plantsplat.segment.classic`).
-- ``sam2``: SAM-2's video predictor prompted on key frames with boxes and points taken from the
-  classic result, propagated through the frames (:mod:`plantsplat.segment.sam2_backend`). Needs the
-  ``sam2`` package and a checkpoint file.
+- ``3d`` (default, offline, no weights): the object is decided in 3D (:mod:`plantsplat.segment.object3d`)
+  in a quick whole-scene model (:mod:`plantsplat.segment.scene`), drawn into each frame and refined on
+  the frame's own edges (:mod:`plantsplat.segment.frame`);
+- ``sam2``: SAM-2's video predictor, prompted from the ``3d`` masks (:mod:`plantsplat.segment.sam2_backend`);
+- your own masks: ``import_masks`` (:mod:`plantsplat.segment.imports`).
 
 Outputs (see :class:`plantsplat.workspace.Workspace`): ``masks/frame_*.png`` (uint8, 255 = plant or
-cube), ``rgba/frame_*.png`` (alpha = mask), ``segment.json`` (backend, settings, per-frame foreground
-fraction, excluded frames with reasons) and ``masks_preview.png`` (contact sheet).
+cube), ``rgba/frame_*.png`` (alpha = mask), ``segment.json`` (backend, settings, per frame the
+foreground share and how sure the segmenter is, frames left out with the reason) and
+``masks_preview.png`` (a contact sheet that shows the least sure frames first).
 
 Example:
-    >>> from plantsplat.segment import segment_workspace
-    >>> info = segment_workspace("ws/plant01")
-    >>> info["backend"], len(info["frames"])
-    ('classic', 120)
+    >>> info = segment_workspace("ws/plant01")                          # doctest: +SKIP
+    >>> info["backend"], info["confidence"]["min"]                      # doctest: +SKIP
+    ('3d', 0.81)
 """
 
 from __future__ import annotations
@@ -36,24 +35,14 @@ import numpy as np
 from plantsplat.errors import PlantsplatError, UsageError
 from plantsplat.io import atomic_path, png_params, read_image, read_json, write_image_atomic, write_json_atomic
 from plantsplat.log import get_logger, progress
+from plantsplat.segment.config import SegmentConfig
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
 
-SEGMENT_VERSION = 1
+SEGMENT_VERSION = 2
 PREVIEW_NAME = "masks_preview.png"
-
-
-_CACHE_BYTES = 768 * 2**20
-
-
-def _write_png(path: Path, img: np.ndarray) -> None:
-    """Write a gray or BGR(A) uint8 image as PNG atomically, with fast compression (:func:`plantsplat.io.png_params`)."""
-    import cv2
-
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), img, png_params()):
-            raise PlantsplatError(f"{path}: could not write image; check the disk space and permissions")
+OBJECT_FILE = ".plantsplat/segment/object.npz"
 
 
 def mask_iou(a, b) -> float:
@@ -73,215 +62,252 @@ def preview_path(ws: Workspace) -> Path:
     return ws.root / PREVIEW_NAME
 
 
-def _images_fingerprint(ws: Workspace, names: list[str]) -> str:
-    """Hash of frames.json when present, else of the image names, sizes and times."""
+def _write_png(path: Path, img: np.ndarray) -> None:
+    """Write a gray or BGR(A) uint8 image as PNG atomically, with fast compression (:func:`plantsplat.io.png_params`)."""
+    import cv2
+
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), img, png_params()):
+            raise PlantsplatError(f"{path}: could not write image; check the disk space and permissions")
+
+
+def _fingerprint(ws: Workspace, names: list[str], cfg: SegmentConfig) -> str:
+    """Hash of what the masks depend on: the frames, the poses report and the options."""
     h = hashlib.sha1()
-    if ws.frames_json.is_file():
-        h.update(ws.frames_json.read_bytes())
+    for p in (ws.frames_json, ws.poses_json):
+        if p.is_file():
+            h.update(p.read_bytes())
     for n in names:
         st = (ws.images_dir / n).stat()
         h.update(f"{n}:{st.st_size}:{int(st.st_mtime)}".encode())
+    opts = {k: str(v) for k, v in dataclasses.asdict(cfg).items() if k not in ("preview", "device")}
+    h.update(json.dumps({"version": SEGMENT_VERSION, **opts}, sort_keys=True).encode())
     return h.hexdigest()[:16]
 
 
-def _settings_dict(settings) -> dict[str, Any]:
-    def conv(x):
-        if dataclasses.is_dataclass(x):
-            return {f.name: conv(getattr(x, f.name)) for f in dataclasses.fields(x) if not f.name.startswith("_")}
-        if isinstance(x, (tuple, list)):
-            return [conv(v) for v in x]
-        if isinstance(x, Path):
-            return str(x)
-        return x
-
-    return conv(settings)
-
-
-def _up_to_date(ws: Workspace, names: list[str], backend: str, settings: dict, fp: str) -> dict | None:
+def _up_to_date(ws: Workspace, names: list[str], fp: str) -> dict | None:
     if not ws.segment_json.is_file():
         return None
     try:
         old = read_json(ws.segment_json)
     except PlantsplatError:
         return None
-    if old.get("backend") != backend or old.get("settings") != json.loads(json.dumps(settings)) or old.get("images_fingerprint") != fp:
+    if old.get("fingerprint") != fp:
         return None
     if not all((ws.masks_dir / n).is_file() and (ws.rgba_dir / n).is_file() for n in names):
         return None
     return old
 
 
-def segment_workspace(
-    ws: Workspace | str | os.PathLike,
-    backend: str = "classic",
-    force: bool = False,
-    sam2_checkpoint: str | os.PathLike | None = None,
-    sam2_config: str | None = None,
-    settings=None,
-    max_excluded: float = 0.5,
-    min_plant_fraction: float = 5e-4,
-    preview: bool = True,
-    device: str | None = None,
-    sam2_image_size: int | None = None,
-) -> dict[str, Any]:
-    """Segment every frame in ``ws/images`` into plant + cube; write masks, RGBA and a preview.
+def calibrated_cube(ws: Workspace):
+    """The calibration cube when the poses stage calibrated the model with it (else None)."""
+    from plantsplat.cube import CubeSpec
 
-    Args:
-        ws: the workspace (after ``plantsplat frames``).
-        backend: ``"classic"`` or ``"sam2"``.
-        force: recompute even if ``segment.json`` says the masks are up to date.
-        sam2_checkpoint: SAM-2 checkpoint file (``{"model": state_dict}``), for ``backend="sam2"``.
-        sam2_config: SAM-2 model config name (default: guessed from the checkpoint's name, e.g.
-            ``configs/sam2.1/sam2.1_hiera_t.yaml`` for ``sam2.1_hiera_tiny.pt``).
-        settings: :class:`plantsplat.segment.classic.ClassicSettings` (default settings when None).
-        max_excluded: more than this fraction of frames without a plant is an error (nothing is written).
-        min_plant_fraction: a frame whose plant covers less than this fraction of the image is
-            excluded (listed in ``segment.json`` under ``excluded``; its mask is still written).
-        preview: write ``masks_preview.png``.
-        device: torch device for SAM-2 (default: CUDA when available, else CPU).
-        sam2_image_size: override SAM-2's input size (tests of the plumbing only; default 1024).
+    if not ws.poses_json.is_file() or read_json(ws.poses_json).get("scale_source") != "aruco":
+        return None
+    if ws.markers_json.is_file():
+        c = read_json(ws.markers_json).get("cube") or {}
+        return CubeSpec(size=c.get("size", 10.0), marker_size=c.get("marker_size", 9.6),
+                        dictionary=c.get("dictionary", "DICT_4X4_50"), face_ids=tuple(c.get("face_ids", range(6))))
+    return CubeSpec()
 
-    Returns:
-        The content of ``segment.json``.
 
-    Example:
-        >>> info = segment_workspace("ws/plant01", backend="classic")
-        >>> [e["name"] for e in info["excluded"]]
-        []
+def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig):
+    """The ``3d`` backend: ``({name: (plant, cube) bool masks}, per-frame facts, capture facts)``."""
+    from plantsplat.segment.frame import distortion_map, object_prior, refine, to_frame
+    from plantsplat.segment.object3d import object_model
+    from plantsplat.segment.scene import scene_model
+
+    t0 = time.perf_counter()
+    params, views, points = scene_model(ws, cfg)
+    t_model = time.perf_counter() - t0
+    obj = object_model(params, views, calibrated_cube(ws), points, min_in_view=cfg.min_in_view,
+                       sfm_reach=cfg.sfm_reach, seed=cfg.seed)
+    save_object(ws, obj)
+    by_name = {v.name: v for v in views}
+    maps = distortion_map(views[0]) if views else None
+    parts: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    facts: dict[str, dict] = {}
+    for name in progress(names, "segment: masks from the 3D object"):
+        view = by_name.get(name)
+        if view is None:
+            facts[name] = {"confidence": None, "note": "no camera pose (not registered by the poses stage)"}
+            continue
+        rgb = read_image(ws.images_dir / name)
+        plant, cube = (to_frame(p, maps) for p in object_prior(obj, view))
+        prior = np.maximum(plant, cube)
+        mask = refine(rgb, prior, cfg.refine_band_px) if cfg.refine_band_px > 0 else prior > 0.5
+        parts[name] = (mask & ~(cube > 0.5), mask & (cube > 0.5))
+        facts[name] = {"confidence": round(mask_iou(prior > 0.5, mask), 4)}
+    info = {"object": obj.info, "calibrated": obj.cube is not None, "timing": {"scene_model_s": round(t_model, 2)}}
+    return parts, facts, info
+
+
+def save_object(ws: Workspace, obj) -> None:
+    """The plant flags and geometry of the 3D object, beside the quick model (segmenting renders reuses them)."""
+    path = ws.root / OBJECT_FILE
+    with atomic_path(path, suffix=".npz") as tmp:
+        np.savez(tmp, plant=obj.plant, axis=obj.axis, up=obj.up, info=json.dumps(obj.info),
+                 cube=json.dumps(None if obj.cube is None else {"size": obj.cube.size, "marker_size": obj.cube.marker_size,
+                                                                "dictionary": obj.cube.dictionary,
+                                                                "face_ids": list(obj.cube.face_ids)}))
+
+
+def segment_workspace(ws: Workspace | str | os.PathLike, cfg: SegmentConfig | None = None, force: bool = False
+                      ) -> dict[str, Any]:
+    """Segment every frame in ``ws/images`` into plant + cube; write masks, RGBA, ``segment.json`` and a preview.
+
+    Needs the poses stage's cameras (``3d`` and ``sam2``), or the masks of ``cfg.import_masks``.
+    Skips the work when ``segment.json`` says the masks are up to date for the same frames, poses and
+    options (``force`` redoes it). Raises :class:`PlantsplatError` on bad input and when more than
+    ``cfg.max_excluded`` of the frames have no plant (nothing is written then).
     """
-    import cv2
-
-    from plantsplat.segment.classic import ClassicSegmenter, ClassicSettings, thread_map
-
+    cfg = cfg or SegmentConfig()
     ws = ws if isinstance(ws, Workspace) else Workspace(ws)
-    if backend not in ("classic", "sam2"):
-        raise UsageError(f"unknown segmentation backend {backend!r}; use classic or sam2")
-    if not ws.images_dir.is_dir():
-        raise PlantsplatError(f"{ws.images_dir}: missing; run `plantsplat frames VIDEO --out {ws.root}` first")
+    if cfg.backend not in ("3d", "sam2"):
+        raise UsageError(f"unknown segmentation backend {cfg.backend!r}; use 3d or sam2")
     names = ws.image_names()
     if not names:
         raise PlantsplatError(f"{ws.images_dir}: no images; run `plantsplat frames VIDEO --out {ws.root}` first")
-    settings = settings or ClassicSettings()
-    sdict = {"classic": _settings_dict(settings), "min_plant_fraction": min_plant_fraction, "version": SEGMENT_VERSION}
-    if backend == "sam2":
-        from plantsplat.segment.sam2_backend import check_sam2, resolve_config
-
-        ckpt = check_sam2(sam2_checkpoint)
-        cfg_name = resolve_config(ckpt, sam2_config)
-        sdict["sam2"] = {"checkpoint": str(ckpt.resolve()), "config": cfg_name}
-    fp = _images_fingerprint(ws, names)
+    if cfg.import_masks is None and not (ws.sparse_dir.is_dir() or ws.transforms_json.is_file()):
+        raise PlantsplatError(f"{ws.root}: no camera poses; run `plantsplat poses {ws.root}` first (the segmenter "
+                              "decides the plant in 3D), or pass --import-masks DIR")
+    fp = _fingerprint(ws, names, cfg)
     if not force:
-        old = _up_to_date(ws, names, backend, sdict, fp)
+        old = _up_to_date(ws, names, fp)
         if old is not None:
-            log.info("%s: masks are up to date (%s backend); pass --force to redo", ws.root, backend)
+            log.info("%s: masks are up to date (%s); pass --force to redo", ws.root, old.get("backend"))
             return old
-
-    paths = [ws.images_dir / n for n in names]
     t0 = time.perf_counter()
-    seg = ClassicSegmenter(settings)
-    markers = None
-    if ws.markers_json.is_file():
-        from plantsplat.markers import read_markers
+    if cfg.import_masks is not None:
+        from plantsplat.segment.imports import import_masks
 
-        markers = read_markers(ws.markers_json).frames
-    ctx = seg.analyse(paths, keep_bytes=_CACHE_BYTES, markers=markers)  # frames within the budget stay decoded
-    t_analyse = time.perf_counter() - t0
-    masks: list[np.ndarray] = []
-    parts: list[tuple[np.ndarray, np.ndarray]] = []  # packed (plant, cube) for SAM-2 prompts
-    per_frame: list[dict[str, Any]] = []
-    shape = None
+        masks, facts, info = import_masks(Path(cfg.import_masks), ws, names), {}, {"source": str(cfg.import_masks)}
+        backend = "import"
+    else:
+        parts, facts, info = _masks_3d(ws, names, cfg)
+        masks = {n: p | c for n, (p, c) in parts.items()}
+        backend = "3d"
+        if cfg.backend == "sam2":
+            masks, info["sam2"] = _sam2(ws, names, parts, cfg)
+            backend = "sam2"
+    return _write_outputs(ws, names, masks, facts, info, backend, fp, cfg, time.perf_counter() - t0)
 
-    def one(i: int):
-        rgb = seg.frames.get(i)
-        if rgb is None:
-            rgb = read_image(paths[i])
-        plant, cube, info = seg.mask_parts(i, rgb, ctx)
-        return rgb.shape[:2], plant, cube, info
 
-    for i, (shape, plant, cube, info) in enumerate(progress(thread_map(one, range(len(paths))),
-                                                             "segment: classic masks", total=len(paths))):
-        masks.append(np.packbits(plant | cube, axis=None))
-        if backend == "sam2":
-            parts.append((np.packbits(plant, axis=None), np.packbits(cube, axis=None)))
-        per_frame.append({"name": names[i], **{k: (round(v, 5) if isinstance(v, float) else v) for k, v in info.items()}})
-    t_classic = time.perf_counter() - t0
-    timing = {"classic_analyse_s": round(t_analyse, 3), "classic_total_s": round(t_classic, 3)}
+def _sam2(ws: Workspace, names: list[str], parts: dict, cfg: SegmentConfig):
+    from plantsplat.segment.sam2_backend import check_sam2, resolve_config, sam2_segment
 
-    if backend == "sam2":
-        from plantsplat.segment.sam2_backend import sam2_segment
+    ckpt = check_sam2(cfg.sam2_checkpoint)
+    config = resolve_config(ckpt, cfg.sam2_config)
+    posed = [n for n in names if n in parts]
+    out, sam_info = sam2_segment([ws.images_dir / n for n in posed], [parts[n] for n in posed], ckpt, config,
+                                 device=cfg.device)
+    return dict(zip(posed, out)), {"checkpoint": str(ckpt.resolve()), "config": config, **sam_info}
 
-        t1 = time.perf_counter()
-        H, W = shape
-        def unpack(b):
-            return np.unpackbits(b, count=H * W).reshape(H, W).astype(bool)
 
-        sam_masks, sam_info = sam2_segment(paths, [(unpack(a), unpack(b)) for a, b in parts], ckpt, cfg_name,
-                                           device=device, image_size=sam2_image_size)
-        masks = [np.packbits(m, axis=None) for m in sam_masks]
-        for rec, m in zip(per_frame, sam_masks):
-            rec["classic_foreground_fraction"] = rec["foreground_fraction"]
-            rec["foreground_fraction"] = round(float(m.mean()), 5)
-        timing["sam2_s"] = round(time.perf_counter() - t1, 3)
-        sdict["sam2"].update(sam_info)
+def _write_outputs(ws: Workspace, names: list[str], masks: dict[str, np.ndarray], facts: dict[str, dict], info: dict,
+                   backend: str, fp: str, cfg: SegmentConfig, seconds: float) -> dict:
+    """Masks, RGBA frames, the preview and ``segment.json``; the frames without a plant are listed."""
+    import cv2
 
-    # frames without a plant
-    excluded = [
-        {"name": r["name"], "reason": f"no plant found (plant covers {r['plant_fraction']:.4%} of the frame)"}
-        for r in per_frame
-        if r["plant_fraction"] < min_plant_fraction
-    ]
-    if excluded and len(excluded) > max_excluded * len(names):
+    shape = next(iter(masks.values())).shape if masks else read_image(ws.images_dir / names[0], "gray").shape
+    per_frame, excluded = [], []
+    for n in names:
+        m = masks.get(n)
+        row = {"name": n, "foreground_fraction": round(float(m.mean()), 5) if m is not None else 0.0, **facts.get(n, {})}
+        per_frame.append(row)
+        if m is None or row["foreground_fraction"] < cfg.min_plant_fraction:
+            reason = row.get("note") or f"no plant found (the mask covers {row['foreground_fraction']:.4%} of the frame)"
+            excluded.append({"name": n, "reason": reason})
+    if len(excluded) > cfg.max_excluded * len(names):
         raise PlantsplatError(
-            f"{ws.images_dir}: no plant found in {len(excluded)} of {len(names)} frames "
-            f"(e.g. {', '.join(e['name'] for e in excluded[:3])}); check the capture (is the plant in view and green?) "
-            "or try --backend sam2; nothing was written"
-        )
-    if excluded:
-        log.warning("segment: no plant found in %d frame(s), excluded: %s", len(excluded),
-                    ", ".join(e["name"] for e in excluded[:12]) + (" ..." if len(excluded) > 12 else ""))
-
-    H, W = shape
-
-    def write(i: int) -> None:
-        m = np.unpackbits(masks[i], count=H * W).reshape(H, W).astype(bool)
-        m8 = m.astype(np.uint8) * 255
-        _write_png(ws.masks_dir / names[i], m8)
-        rgb = seg.frames.pop(i, None)
-        bgr = cv2.cvtColor(read_image(paths[i]) if rgb is None else rgb, cv2.COLOR_RGB2BGR)
-        _write_png(ws.rgba_dir / names[i], cv2.merge([*cv2.split(bgr), m8]))  # BGRA [H, W, 4]
-
-    for _ in progress(thread_map(write, range(len(paths))), "segment: writing masks and RGBA", total=len(paths)):
-        pass
-    # stale outputs of an earlier, different set of frames
+            f"{ws.images_dir}: no plant in {len(excluded)} of {len(names)} frames (e.g. {excluded[0]['name']}: "
+            f"{excluded[0]['reason']}); check the capture and the poses; nothing was written")
+    for n in progress(names, "segment: writing masks and RGBA"):
+        m8 = masks[n].astype(np.uint8) * 255 if n in masks else np.zeros(shape, np.uint8)
+        _write_png(ws.masks_dir / n, m8)
+        bgr = cv2.cvtColor(read_image(ws.images_dir / n), cv2.COLOR_RGB2BGR)
+        _write_png(ws.rgba_dir / n, cv2.merge([*cv2.split(bgr), m8]))
     keep = set(names)
-    for d in (ws.masks_dir, ws.rgba_dir):
+    for d in (ws.masks_dir, ws.rgba_dir):  # stale outputs of an earlier, different set of frames
         for f in d.iterdir():
             if f.name not in keep and re.fullmatch(r"frame_\d{5}\.png", f.name):
                 f.unlink(missing_ok=True)
-
+    conf = [r["confidence"] for r in per_frame if r.get("confidence") is not None]
     fg = [r["foreground_fraction"] for r in per_frame]
     out = {
-        "backend": backend,
-        "settings": sdict,
-        "images_fingerprint": fp,
-        "image_size": [W, H],
-        "capture": {k: v for k, v in ctx.info.items()},
-        "intrinsics_K": ctx.K.round(4).tolist() if ctx.K is not None else None,
-        "timing": {**timing, "seconds_per_frame": round((time.perf_counter() - t0) / len(names), 4)},
+        "backend": backend, "version": SEGMENT_VERSION, "fingerprint": fp,
+        "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(cfg).items()},
+        "image_size": [shape[1], shape[0]], "capture": info,
+        "timing": {"total_s": round(seconds, 2), "seconds_per_frame": round(seconds / len(names), 4),
+                   **info.pop("timing", {})},
         "foreground_fraction": {"mean": round(float(np.mean(fg)), 5), "min": round(float(np.min(fg)), 5),
                                 "max": round(float(np.max(fg)), 5)},
+        "confidence": ({"mean": round(float(np.mean(conf)), 4), "min": round(float(np.min(conf)), 4),
+                        "least_sure": min((r for r in per_frame if r.get("confidence") is not None),
+                                          key=lambda r: r["confidence"])["name"]} if conf else None),
         "excluded": excluded,
         "frames": per_frame,
     }
-    if preview:
-        from plantsplat.segment.preview import contact_sheet
-
-        excl = {e["name"] for e in excluded}
-        sheet = contact_sheet(paths, [ws.masks_dir / n for n in names], labels=names,
-                              excluded=[n in excl for n in names])
-        write_image_atomic(preview_path(ws), sheet)
+    if cfg.preview:
+        _preview(ws, names, per_frame, {e["name"] for e in excluded})
         out["preview"] = PREVIEW_NAME
     write_json_atomic(ws.segment_json, out)
-    log.info("segment: wrote %d masks (%s), mean foreground %.1f%%, %.3f s per frame", len(names), backend,
-             100 * out["foreground_fraction"]["mean"], out["timing"]["seconds_per_frame"])
+    log.info("segment: wrote %d masks (%s), mean foreground %.1f%%%s, %.2f s per frame", len(names), backend,
+             100 * out["foreground_fraction"]["mean"],
+             f", confidence {out['confidence']['mean']:.2f} (least sure {out['confidence']['min']:.2f})" if conf else "",
+             out["timing"]["seconds_per_frame"])
+    return out
+
+
+def _preview(ws: Workspace, names: list[str], per_frame: list[dict], excluded: set[str]) -> None:
+    """The contact sheet: the least sure frames first, then frames spread over the capture."""
+    from plantsplat.segment.preview import contact_sheet
+
+    sure = [r.get("confidence") for r in per_frame]
+    order = sorted(range(len(names)), key=lambda i: (sure[i] is None, sure[i] if sure[i] is not None else 1.0))
+    pick = order[:4] + [int(i) for i in np.linspace(0, len(names) - 1, 12).round()]
+    pick = list(dict.fromkeys(pick))[:16]
+    labels = [names[i] + (f"  sure {sure[i]:.2f}" if sure[i] is not None else "") for i in pick]
+    sheet = contact_sheet([ws.images_dir / names[i] for i in pick], [ws.masks_dir / names[i] for i in pick],
+                          labels=labels, excluded=[names[i] in excluded for i in pick], max_tiles=len(pick))
+    write_image_atomic(preview_path(ws), sheet)
+
+
+def load_object(ws: Workspace):
+    """The 3D object the segment stage found (:func:`save_object`) with its quick model, and the cameras by name."""
+    from plantsplat.cube import CubeSpec
+    from plantsplat.segment.object3d import ObjectModel
+    from plantsplat.segment.scene import scene_dir
+    from plantsplat.train.data import load_scene
+    from plantsplat.train.trainer import load_model
+
+    path = ws.root / OBJECT_FILE
+    if not path.is_file():
+        raise PlantsplatError(f"{path}: missing; run `plantsplat segment {ws.root}` (the 3d backend) first")
+    data = np.load(path)
+    params, _ = load_model(ws, scene_dir(ws))
+    cube = json.loads(str(data["cube"]))
+    obj = ObjectModel(params={k: v.detach().cpu() for k, v in params.items()}, plant=data["plant"],
+                      cube=None if cube is None else CubeSpec(**{**cube, "face_ids": tuple(cube["face_ids"])}),
+                      axis=data["axis"], up=data["up"], info=json.loads(str(data["info"])))
+    return obj, {v.name: v for v in load_scene(ws, need_masks=False, load_images=False).views}
+
+
+def segment_images(ws: Workspace, images: dict[str, np.ndarray], band_px: int | None = None) -> dict[str, np.ndarray]:
+    """Masks ``{name: [h, w] bool}`` of images taken through the workspace's pinhole cameras (such as renders of its
+    test views, ``[h, w, 3]`` uint8 at any size), cut as the segment stage cuts the frames: the 3D object it
+    found, drawn into each camera and refined on the image."""
+    import cv2
+
+    from plantsplat.segment.frame import object_prior, refine
+
+    obj, views = load_object(ws)
+    band = SegmentConfig().refine_band_px if band_px is None else band_px
+    out = {}
+    for name, rgb in images.items():
+        prior = np.maximum(*object_prior(obj, views[name]))
+        if prior.shape != rgb.shape[:2]:
+            prior = cv2.resize(prior, (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_AREA)
+        out[name] = refine(rgb, prior, band) if band > 0 else prior > 0.5
     return out

@@ -1,7 +1,7 @@
-"""SAM-2 backend: SAM-2's video predictor, prompted from the classic result, propagated over the frames.
+"""SAM-2 backend: SAM-2's video predictor, prompted from the ``3d`` segmenter's masks, propagated over the frames.
 
-The classic segmenter runs first; on key frames (every ``key_every``-th frame where it found the
-object) the plant and the cube each get a box prompt (the bounding box of the classic mask) plus
+The ``3d`` segmenter runs first; on key frames (every ``key_every``-th frame where it found the
+object) the plant and the cube each get a box prompt (the bounding box of its mask) plus
 positive points at the interior's most central pixels. SAM-2 then propagates both objects through
 the whole frame sequence (its memory attention carries the masks between the prompts), and the
 final foreground is the union of the two objects.
@@ -11,7 +11,7 @@ of ``<index>.jpg`` frames, ``add_new_points_or_box``, ``propagate_in_video``). T
 the ``sam2`` package does not import torchvision, so it runs with the CPU build of torch.
 
 Example:
-    >>> masks, info = sam2_segment(paths, classic_parts, Path("sam2.1_hiera_tiny.pt"),
+    >>> masks, info = sam2_segment(paths, parts, Path("sam2.1_hiera_tiny.pt"),
     ...                            "configs/sam2.1/sam2.1_hiera_t.yaml")   # doctest: +SKIP
 """
 
@@ -47,7 +47,7 @@ def check_sam2(checkpoint: str | os.PathLike | None) -> Path:
     """
     if importlib.util.find_spec("sam2") is None:
         raise PlantsplatError(f"the sam2 backend needs the `sam2` package; install it with: {INSTALL_HINT} "
-                              "(or use --backend classic)")
+                              "(or use --backend 3d)")
     if checkpoint is None:
         raise UsageError("--backend sam2 needs --sam2-checkpoint PATH (a SAM-2 checkpoint such as "
                          "sam2.1_hiera_tiny.pt from github.com/facebookresearch/sam2)")
@@ -118,14 +118,14 @@ def _prompt(mask: np.ndarray, n_points: int = 3) -> tuple[np.ndarray, np.ndarray
 
 def sam2_segment(
     image_paths: list[Path],
-    classic_parts: list[tuple[np.ndarray, np.ndarray]],
+    parts: list[tuple[np.ndarray, np.ndarray]],
     checkpoint: Path,
     config: str,
     device: str | None = None,
     key_every: int = 10,
     image_size: int | None = None,
 ) -> tuple[list[np.ndarray], dict[str, Any]]:
-    """Run SAM-2's video predictor over the frames, prompted from the classic ``(plant, cube)`` masks.
+    """Run SAM-2's video predictor over the frames, prompted from the ``3d`` segmenter's ``(plant, cube)`` masks.
 
     ``image_size`` overrides the model's input size (SAM-2 is trained at 1024; smaller sizes only
     make sense for tests of the plumbing). Returns per-frame bool masks ``[H, W]`` (plant or cube)
@@ -140,8 +140,8 @@ def sam2_segment(
     n = len(image_paths)
     if device == "cpu":
         log.warning("segment: SAM-2 runs on the CPU, which is slow (the tiny model took about 17 s per frame on 2 "
-                    "cores in benchmarks/bench_segment.py, so 120 frames take over half an hour); the classic backend "
-                    "takes under 0.1 s")
+                    "cores in benchmarks/bench_segment.py, so 120 frames take over half an hour); the 3d backend "
+                    "takes under a second")
     try:
         extra = [f"++model.image_size={int(image_size)}"] if image_size else []
         predictor = build_sam2_video_predictor(config, str(checkpoint), device=device, hydra_overrides_extra=extra)
@@ -163,7 +163,7 @@ def sam2_segment(
             keys = list(range(0, n, max(1, key_every)))
             for obj_id, part in ((1, 0), (2, 1)):
                 for k in keys:
-                    pr = _prompt(classic_parts[k][part])
+                    pr = _prompt(parts[k][part])
                     if pr is None:
                         continue
                     box, pts = pr
@@ -171,7 +171,7 @@ def sam2_segment(
                                                     labels=np.ones(len(pts), np.int32), box=box)
                     prompts += 1
             if prompts == 0:
-                raise PlantsplatError(f"{image_paths[0].parent}: the classic segmenter found nothing to prompt "
+                raise PlantsplatError(f"{image_paths[0].parent}: the 3d segmenter found nothing to prompt "
                                       "SAM-2 with; check the capture")
             with make_progress() as bar:
                 task = bar.add_task("segment: SAM-2 propagation", total=n, info="")

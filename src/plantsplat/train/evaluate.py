@@ -17,8 +17,8 @@ background ``B``:
   The mask is the frame's, so the render is clipped exactly where the target is: an upper bound.
 - ``pbr_segmented`` (full mode with masks): the paper's PBR as the paper ran it. The paper removes
   the background from the *renders* with SAM-2; here the renders of the test views are segmented
-  by the segmenter that made the workspace's masks (classic, or SAM-2 with the checkpoint recorded
-  in ``segment.json``), each render is clipped by its own mask and scored against the frame
+  as the segment stage cut the frames (its 3D object drawn into each test camera, refined on the
+  render), each render is clipped by its own mask and scored against the frame
   composited over ``B`` as above (the render as the 8-bit image the segmenter sees). ``mask_iou``
   compares those masks with the test frames' masks. A render in which the segmenter finds nothing is
   scored as all background; None, with ``pbr_segmented_error``, where the segmenter fails outright.
@@ -192,35 +192,19 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
 
 
 def segment_renders(ws: Workspace, renders: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray] | None, str | None]:
-    """Segment a full model's renders ``{name: [h, w, 3] uint8 RGB}`` as the workspace's frames were segmented
-    (``segment.json``'s backend; classic when there is none or its SAM-2 checkpoint is gone), in a temporary
-    workspace. Returns ``({name: [h, w] bool mask}, None)`` (an empty mask where it finds no plant), or
-    ``(None, reason)`` when the segmenter fails outright."""
-    import tempfile
+    """Segment a full model's renders ``{name: [h, w, 3] uint8 RGB}`` as the workspace's frames were segmented: the
+    segment stage's 3D object drawn into each test camera and refined on the render
+    (:func:`plantsplat.segment.segment_images`). Returns ``({name: [h, w] bool mask}, None)``, or
+    ``(None, reason)`` when the workspace has no such object (masks imported, or not segmented here)."""
+    from plantsplat.segment import segment_images
 
-    from plantsplat.io import read_image, read_json
-    from plantsplat.segment import segment_workspace
-
-    backend, kwargs = "classic", {}
-    if ws.segment_json.is_file():
-        info = read_json(ws.segment_json)
-        ckpt = ((info.get("settings") or {}).get("sam2") or {}).get("checkpoint")
-        if info.get("backend") == "sam2" and ckpt and Path(ckpt).is_file():
-            backend = "sam2"
-            kwargs = {"sam2_checkpoint": ckpt, "sam2_config": info["settings"]["sam2"].get("config")}
-    with tempfile.TemporaryDirectory(prefix="plantsplat_pbr_") as tmp:
-        rws = Workspace(tmp)
-        rws.images_dir.mkdir(parents=True)
-        for name, rgb in renders.items():
-            write_image_atomic(rws.images_dir / name, rgb)
-        log.info("PBR: segmenting %d test renders of the full model (%s), as the paper removes the background "
-                 "after training", len(renders), backend)
-        try:
-            segment_workspace(rws, backend=backend, preview=False, max_excluded=1.0, **kwargs)
-        except PlantsplatError as e:
-            log.warning("PBR: the renders could not be segmented (%s); pbr_segmented is left out", e)
-            return None, str(e)
-        return {name: read_image(rws.masks_dir / name, "gray") > 127 for name in renders}, None
+    log.info("PBR: segmenting %d test renders of the full model, as the paper removes the background after training",
+             len(renders))
+    try:
+        return segment_images(ws, renders), None
+    except PlantsplatError as e:
+        log.warning("PBR: the renders could not be segmented (%s); pbr_segmented is left out", e)
+        return None, str(e)
 
 
 def foreground_scores(pred: torch.Tensor, gt_fg: torch.Tensor, alpha: torch.Tensor) -> dict:

@@ -213,16 +213,23 @@ def fruit_mask(colors: np.ndarray, s: TraitSettings) -> np.ndarray:
     return red & (hsv[:, 1] >= s.fruit_min_saturation) & (hsv[:, 2] >= s.fruit_min_value)
 
 
+UNRIPE_HSV = ((18, 35, 60), (45, 150, 255))
+"""Unripe fruit colours, OpenCV HSV (hue 0-179) box: pale yellow-green to cream, not too grey or too saturated."""
+
+
 def unripe_fruit_mask(colors: np.ndarray) -> np.ndarray:
-    """[N] bool: points of unripe-fruit colour (pale yellow-green to cream; the segmenter's colour model).
+    """[N] bool: points of unripe-fruit colour (:data:`UNRIPE_HSV`). Beige walls and boxes share it: the traits
+    stage uses it only for fruit-sized clusters hanging beside the plant.
 
     Example:
         >>> unripe_fruit_mask(np.array([[190, 196, 140], [40, 160, 50], [200, 20, 30]], np.uint8)).tolist()
         [True, False, False]
     """
-    from plantsplat.segment.colour import unripe_colour_mask
+    import cv2
 
-    return unripe_colour_mask(np.ascontiguousarray(np.asarray(colors, np.uint8).reshape(1, -1, 3)))[0]
+    hsv = cv2.cvtColor(np.ascontiguousarray(np.asarray(colors, np.uint8).reshape(1, -1, 3)), cv2.COLOR_RGB2HSV)[0]
+    lo, hi = (np.array(b, np.uint8) for b in UNRIPE_HSV)
+    return np.all((hsv >= lo) & (hsv <= hi), axis=1)
 
 
 def fruit_sized(points: np.ndarray, max_cm: float) -> bool:

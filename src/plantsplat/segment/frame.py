@@ -1,0 +1,130 @@
+"""One frame's mask from the capture's 3D object: the plant and cube as the model draws them, refined on the image.
+
+:func:`object_prior` renders, for one camera, how much of each pixel is plant (the plant Gaussians'
+share of the composite, so that whatever stands in front, such as the pot, hides it) and draws the
+calibrated cube exactly (its box projected, less the pixels where a nearer Gaussian covers it).
+Cameras carry errors of a few pixels and the quick model blurs thin parts, so :func:`refine` moves
+the outline onto the image's own edges: OpenCV's GrabCut, started from the prior (sure inside, sure
+outside, undecided in a band along the outline), learns the frame's plant and background colours
+and cuts along the strongest edges in the band.
+
+Example:
+    >>> plant, cube = object_prior(obj, view)                       # doctest: +SKIP
+    >>> mask = refine(rgb, np.maximum(plant, cube), band_px=6)      # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from plantsplat.segment.object3d import ObjectModel, camera_points, render_values
+
+
+def cube_depth(cube, view) -> tuple[np.ndarray, np.ndarray]:
+    """The calibrated cube in a view: ``(silhouette [H, W] bool, depth of its nearest face [H, W], inf outside)``."""
+    import cv2
+
+    h = cube.size / 2
+    corners = np.array([[x, y, z] for x in (-h, h) for y in (-h, h) for z in (0.0, cube.size)])
+    uv, z = camera_points(corners, view)
+    sil = np.zeros((view.height, view.width), np.uint8)
+    depth = np.full((view.height, view.width), np.inf)
+    if (z <= 1e-6).any():
+        return sil.astype(bool), depth
+    hull = cv2.convexHull((uv - 0.5).astype(np.float32)).reshape(-1, 2)  # OpenCV draws pixel centres at integers
+    cv2.fillConvexPoly(sil, np.round(hull * 16).astype(np.int32), 1, shift=4)
+    ys, xs = np.nonzero(sil)
+    # ray / box intersection (slab method) in the cube frame for the silhouette's pixels
+    R, t = view.viewmat[:3, :3], view.viewmat[:3, 3]
+    origin = -R.T @ t
+    rays = np.linalg.solve(view.K, np.stack([xs + 0.5, ys + 0.5, np.ones(len(xs))]))  # [3, P] rays through pixel centres, z = 1
+    d = (R.T @ rays).T  # [P, 3] world directions, scaled so that camera z = 1
+    lo, hi = np.array([-h, -h, 0.0]), np.array([h, h, cube.size])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (lo - origin) / d, (hi - origin) / d
+    near = np.nanmax(np.minimum(t1, t2), axis=1)
+    far = np.nanmin(np.maximum(t1, t2), axis=1)
+    hit = far >= near
+    depth[ys[hit], xs[hit]] = near[hit]  # the ray's parameter is the camera z (rays have z = 1)
+    return np.isfinite(depth), depth
+
+
+def object_prior(obj: ObjectModel, view) -> tuple[np.ndarray, np.ndarray]:
+    """How much of each pixel of ``view`` is plant, and is cube, in [0, 1]: ``(plant, cube)``, ``[H, W]`` float32."""
+    p = obj.params
+    n = len(obj.plant)
+    mu = p["means"].numpy()
+    plant = torch.zeros(n, 3)
+    plant[torch.from_numpy(obj.plant)] = 1.0
+    # nothing stands between the camera and the object (the filmer walks there): Gaussians nearer than the object's
+    # region are floaters of the quick model, which can hang in front of one camera and veil the whole frame
+    axis_depth = float(view.viewmat[2, :3] @ obj.axis + view.viewmat[2, 3])
+    keep_np = camera_points(mu, view)[1] > axis_depth - 1.2 * obj.info["reach"]
+    cube = np.zeros((view.height, view.width), np.float32)
+    if obj.cube is not None:  # Gaussians of the cube give way to the exact cube
+        h = obj.cube.size / 2
+        keep_np &= ~((np.abs(mu[:, 0]) < h) & (np.abs(mu[:, 1]) < h) & (mu[:, 2] > 0) & (mu[:, 2] < obj.cube.size))
+    keep = torch.from_numpy(keep_np)
+    img, _ = render_values(p, plant, view, keep=keep)
+    if obj.cube is not None:
+        sil, depth = cube_depth(obj.cube, view)
+        if sil.any():
+            uv, z = camera_points(mu, view)
+            u = np.clip(np.floor(uv[:, 0]).astype(int), 0, view.width - 1)
+            v = np.clip(np.floor(uv[:, 1]).astype(int), 0, view.height - 1)
+            inside = (uv[:, 0] >= 0) & (uv[:, 0] < view.width) & (uv[:, 1] >= 0) & (uv[:, 1] < view.height)
+            reference = np.where(inside & sil[v, u], depth[v, u], depth[sil].min())  # beside it: its nearest point
+            front = keep.numpy() & (z < reference - 0.5)  # Gaussians in front of the cube
+            _, cover = render_values(p, torch.ones(n, 3), view, keep=torch.from_numpy(front))
+            cube = (sil * (1.0 - cover)).astype(np.float32)
+    return img[..., 0].astype(np.float32), cube
+
+
+def distortion_map(view) -> tuple[np.ndarray, np.ndarray] | None:
+    """Where each pixel of the (distorted) frame lies in the view's pinhole image: the two ``cv2.remap`` maps that
+    bring a rendered prior onto the frame. None for a camera without distortion."""
+    import cv2
+
+    if view.dist.size == 0 or not np.any(np.abs(view.dist) > 0):
+        return None
+    ys, xs = np.mgrid[0:view.height, 0:view.width].astype(np.float64)
+    pts = cv2.undistortPoints(np.stack([xs.ravel(), ys.ravel()], 1).reshape(-1, 1, 2), view.K, view.dist, P=view.K)
+    pts = pts.reshape(view.height, view.width, 2).astype(np.float32)
+    return pts[..., 0], pts[..., 1]
+
+
+def to_frame(prior: np.ndarray, maps: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """A prior rendered through the pinhole camera, moved onto the distorted frame (see :func:`distortion_map`)."""
+    import cv2
+
+    if maps is None:
+        return prior
+    return cv2.remap(prior, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def refine(rgb: np.ndarray, prior: np.ndarray, band_px: int = 6, iterations: int = 3, margin_px: int = 24) -> np.ndarray:
+    """The mask ``[H, W]`` bool: ``prior > 0.5`` with its outline moved onto the image's edges by GrabCut within
+    ``band_px`` of it (in the prior's bounding box grown by ``margin_px``, where all the work is)."""
+    import cv2
+
+    fg = prior > 0.5
+    if not fg.any():
+        return fg
+    ys, xs = np.nonzero(fg)
+    H, W = fg.shape
+    y0, y1 = max(0, ys.min() - margin_px), min(H, ys.max() + margin_px + 1)
+    x0, x1 = max(0, xs.min() - margin_px), min(W, xs.max() + margin_px + 1)
+    crop = fg[y0:y1, x0:x1].astype(np.uint8)
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1, 2 * band_px + 1))
+    grown, shrunk = cv2.dilate(crop, k) > 0, cv2.erode(crop, k) > 0
+    m = np.full(crop.shape, cv2.GC_BGD, np.uint8)
+    m[grown] = cv2.GC_PR_BGD
+    m[crop > 0] = cv2.GC_PR_FGD
+    m[shrunk] = cv2.GC_FGD
+    if (m == cv2.GC_FGD).any() and (m == cv2.GC_BGD).any():
+        bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
+        cv2.grabCut(np.ascontiguousarray(rgb[y0:y1, x0:x1, ::-1]), m, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
+    out = np.zeros_like(fg)
+    out[y0:y1, x0:x1] = (m == cv2.GC_FGD) | (m == cv2.GC_PR_FGD)
+    return out

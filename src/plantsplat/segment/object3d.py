@@ -1,0 +1,343 @@
+"""What is object in 3D: the plant's Gaussians in a quick whole-scene model, and the calibrated cube.
+
+The poses stage gives every frame a camera in the cube frame (cm, z up, the cube's bottom face on
+the ground at the origin). What holds in any room:
+
+- the cube is a known 10 cm box standing at the origin;
+- the plant stands where the cameras look: on the vertical axis through the point closest to every
+  optical axis (:func:`orbit_axis`), above the ground;
+- the pot and its soil are a thick solid around that axis on the ground; leaves, petioles and fruit
+  are thin. Space the cameras see through is free; a solid is never seen through. Free space is
+  carved from the model's depth in every view (:func:`carve`); what survives an erosion by a few
+  centimetres near the axis is the pot (:func:`pot_solid`);
+- the room is far: the plant is in view in (nearly) every frame, while a Gaussian that stands in for
+  a blank ceiling or wall at the wrong depth near the axis leaves the frame in many of them
+  (:func:`in_view_share`).
+
+:func:`object_model` puts these together into an :class:`ObjectModel`: which Gaussians of the scene
+model are plant, and the cube. Without a calibrated cube there is no ground, pot or cube: the plant
+is what stands near the orbit's axis, in view of the cameras.
+
+Example:
+    >>> obj = object_model(params, views, calibrated=True)     # doctest: +SKIP
+    >>> int(obj.plant.sum()), obj.pot                          # doctest: +SKIP
+    (14210, {'voxels': 2310, 'top_cm': 14.0, 'radius_cm': 9.5})
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from plantsplat.cube import CubeSpec
+from plantsplat.log import get_logger
+
+log = get_logger(__name__)
+
+
+@dataclass
+class ObjectModel:
+    """The capture's object: the scene model's Gaussians with a plant flag, the cube and the geometry found."""
+
+    params: dict  # name -> tensor, activated on use (means [N, 3], quats [N, 4], scales [N, 3] log, opacities [N] logit)
+    plant: np.ndarray  # [N] bool: Gaussians of the plant
+    cube: CubeSpec | None  # the calibration cube at the origin (None: no calibrated cube)
+    axis: np.ndarray  # [2] xy of the vertical axis the cameras circle (or [3] point + up in the model frame)
+    up: np.ndarray  # [3] the world's up
+    info: dict = field(default_factory=dict)
+
+
+def orbit_axis(c2ws: list[np.ndarray]) -> np.ndarray:
+    """The point closest (least squares) to every camera's optical axis: what the cameras circle. ``[3]``"""
+    from plantsplat.poses.checks import orbit_centre
+
+    c = orbit_centre(c2ws)
+    if c is None:
+        return np.mean([M[:3, 3] for M in c2ws], axis=0)
+    return c
+
+
+def up_from_orbit(c2ws: list[np.ndarray], centre: np.ndarray) -> np.ndarray:
+    """Without a calibrated cube: the normal of the plane the cameras move in, turned towards the cameras'
+    side of the object (cameras look at a plant from around and above it). ``[3]``"""
+    C = np.array([M[:3, 3] for M in c2ws])
+    n = np.linalg.svd(C - C.mean(0))[2][-1]
+    return n if n @ (C.mean(0) - centre) >= 0 else -n
+
+
+def camera_points(points: np.ndarray, view) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates ``[N, 2]`` and depth ``[N]`` of world points in a pinhole view (``train.data.View``).
+
+    Coordinates as the rasterizer and COLMAP count them: pixel ``(i, j)`` spans ``[i, i + 1) x [j, j + 1)``.
+    """
+    Xc = points @ view.viewmat[:3, :3].T + view.viewmat[:3, 3]
+    z = Xc[:, 2]
+    uv = Xc @ view.K.T
+    return uv[:, :2] / np.maximum(uv[:, 2:], 1e-9), z
+
+
+def in_view_share(points: np.ndarray, views: list) -> np.ndarray:
+    """Share of the views whose frame holds each point (in front of the camera, inside the image). ``[N]``"""
+    n = np.zeros(len(points))
+    for v in views:
+        uv, z = camera_points(points, v)
+        n += (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < v.width) & (uv[:, 1] >= 0) & (uv[:, 1] < v.height)
+    return n / max(len(views), 1)
+
+
+def _scaled_K(view, scale: float) -> torch.Tensor:
+    """The view's intrinsics for an image ``scale`` times its size (pixel edges at integers: all of K scales)."""
+    K = torch.tensor(view.K, dtype=torch.float32).clone()
+    K[:2] *= scale
+    return K
+
+
+def render_values(params: dict, values: torch.Tensor, view, scale: float = 1.0, keep: torch.Tensor | None = None):
+    """Composite per-Gaussian ``values`` ``[N, 3]`` into a view (``scale`` times its size): ``(image [h, w, 3], alpha
+    [h, w])`` as numpy. ``keep`` [N] bool draws only some Gaussians."""
+    from plantsplat.raster import rasterize
+
+    mu, q, s, o = params["means"], params["quats"], params["scales"], params["opacities"]
+    if keep is not None:
+        mu, q, s, o, values = mu[keep], q[keep], s[keep], o[keep], values[keep]
+    w, h = int(round(view.width * scale)), int(round(view.height * scale))
+    with torch.no_grad():
+        out = rasterize(mu, q, torch.exp(s), torch.sigmoid(o).reshape(-1), values,
+                        torch.tensor(view.viewmat, dtype=torch.float32), _scaled_K(view, scale), w, h, backend="cpu")
+    return out.color.numpy(), out.alpha.reshape(h, w).numpy()
+
+
+def depth_map(params: dict, view, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Expected depth of the model's surface (camera z, model units) and its alpha, at ``scale``. ``[h, w]`` each."""
+    mu = params["means"].numpy()
+    z = mu @ view.viewmat[2, :3] + view.viewmat[2, 3]
+    img, alpha = render_values(params, torch.tensor(np.repeat(z[:, None], 3, 1), dtype=torch.float32), view, scale)
+    return img[..., 0] / np.maximum(alpha, 1e-6), alpha
+
+
+@dataclass
+class Pot:
+    """A pot found as rings of Gaussians around the axis: its axis ``centre`` ``[2]``, rim and soil heights and the
+    radius at each height (``heights`` and ``radii`` from the ground up to the rim)."""
+
+    centre: np.ndarray
+    rim_z: float
+    soil_z: float
+    heights: np.ndarray
+    radii: np.ndarray
+    wall: float = 1.5
+    """How far inside the outer radius the pot's wall and rim reach (cm); above the soil, inside that, is plant."""
+
+    def contains(self, points: np.ndarray, margin: float) -> np.ndarray:
+        """Points ``[N, 3]`` of the pot (its body below the soil, its wall up to the rim), grown by ``margin``. ``[N]``"""
+        z = points[:, 2]
+        r = np.interp(z, self.heights, self.radii)
+        d = np.linalg.norm(points[:, :2] - self.centre, axis=1)
+        body = z < self.soil_z + margin
+        wall = (d > r - self.wall) & (z < self.rim_z + margin)
+        return (d < r + margin) & (z > -margin) & (body | wall)
+
+    def summary(self) -> dict:
+        return {"centre_cm": np.round(self.centre, 2).tolist(), "rim_z_cm": round(self.rim_z, 2),
+                "soil_z_cm": round(self.soil_z, 2), "rim_radius_cm": round(float(self.radii[-1]), 2),
+                "base_radius_cm": round(float(self.radii[0]), 2)}
+
+
+def _circle(xy: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares circle through 2D points ``[N, 2]``: ``(centre [2], radius)``."""
+    A = np.c_[2 * xy, np.ones(len(xy))]
+    c = np.linalg.lstsq(A, (xy ** 2).sum(1), rcond=None)[0]
+    return c[:2], float(np.sqrt(max(c[2] + c[0] ** 2 + c[1] ** 2, 0.0)))
+
+
+def ring(xy: np.ndarray, axis_xy: np.ndarray, rng: np.random.Generator, band: float = 0.5, sectors: int = 16,
+         trials: int = 300, r_range: tuple[float, float] = (3.0, 16.0), max_offset: float = 5.0, contrast: float = 3.0):
+    """The best horizontal ring in a slab of points ``xy [N, 2]`` (RANSAC circles near the axis): ``(sectors of the
+    circle covered, inliers, centre, radius)`` or None. A pot's wall and rim are thin shells seen all around:
+    the band of ``band`` cm on either side of the circle holds ``contrast`` times as many points per width as the
+    annulus beside it. Leaves at one height lie at many radii: no such shell."""
+    if len(xy) < 10:
+        return None
+    best = None
+    dist = np.linalg.norm(xy - axis_xy, axis=1)
+    outer = np.flatnonzero(dist >= np.median(dist))  # a wall is outside what it holds (soil, crown)
+    for k in range(trials):
+        pool = outer if k % 2 and len(outer) >= 3 else np.arange(len(xy))
+        c, r = _circle(xy[rng.choice(pool, 3, replace=False)])
+        if not r_range[0] <= r <= r_range[1] or np.linalg.norm(c - axis_xy) > max_offset:
+            continue
+        inl = np.abs(np.linalg.norm(xy - c, axis=1) - r) < band
+        az = np.arctan2(xy[inl, 1] - c[1], xy[inl, 0] - c[0])
+        cov = len(np.unique(np.floor((az + np.pi) / (2 * np.pi) * sectors).astype(int) % sectors))
+        if best is None or (cov, int(inl.sum())) > best[:2]:
+            best = (cov, int(inl.sum()), c, r)
+    if best is None:
+        return None
+    d = np.abs(np.linalg.norm(xy - best[2], axis=1) - best[3])
+    beside = int(((d >= band) & (d < 4 * band)).sum())  # the annulus around the band, three times as wide
+    if best[1] < contrast * beside / 3:
+        return None  # points spread over many radii (foliage) make circles too, but not a thin shell
+    c, r = _circle(xy[d < band])
+    return best[0], best[1], c, r
+
+
+def find_pot(points: np.ndarray, axis_xy: np.ndarray, slab: float = 0.5, reach: float = 16.0,
+             min_sectors: int = 14, seed: int = 0) -> Pot | None:
+    """The pot standing on the ground around the axis, from the model's Gaussians ``points [N, 3]`` (cube frame).
+
+    Each horizontal slab (``slab`` cm, from the ground up) is searched for a ring around the axis
+    (:func:`ring`); the rim is the strongest ring seen all around (at least ``min_sectors`` of 16
+    directions), its top the highest slab above it that still holds that ring. The wall below follows
+    the rings found there (a pot widens or narrows evenly). None when no ring is strong enough.
+    """
+    rng = np.random.default_rng(seed)
+    near = points[np.linalg.norm(points[:, :2] - axis_xy, axis=1) < reach]
+    rings = []
+    for z in np.arange(slab, near[:, 2].max(initial=0.0), slab):
+        found = ring(near[np.abs(near[:, 2] - z) < 1.5 * slab][:, :2], axis_xy, rng)
+        if found is not None and found[0] >= min_sectors:
+            rings.append((float(z), *found))
+    if not rings:
+        return None
+    k = max(range(len(rings)), key=lambda i: rings[i][2])
+    z_rim, _, _, centre, r_rim = rings[k]
+    for z, _, _, c, r in rings[k + 1:]:  # the rim's top: the same ring a little higher
+        if z - z_rim > 3 * slab or abs(r - r_rim) > 1.0 or np.linalg.norm(c - centre) > 1.0:
+            break
+        z_rim = z
+    wall = [(z, r) for z, _, _, c, r in rings if z < z_rim and np.linalg.norm(c - centre) < 1.5 and r <= r_rim + 1.0]
+    heights = np.array([0.0] + [z for z, _ in wall] + [z_rim])
+    radii = np.array([wall[0][1] if wall else r_rim] + [r for _, r in wall] + [r_rim])
+    return Pot(centre=np.asarray(centre), rim_z=float(z_rim), soil_z=soil_level(near, centre, r_rim, z_rim, slab),
+               heights=heights, radii=np.maximum.accumulate(radii))
+
+
+def soil_level(points: np.ndarray, centre: np.ndarray, r_rim: float, z_rim: float, slab: float,
+               depth: float = 6.0, cover: float = 0.5) -> float:
+    """The top of the soil in a pot: the highest slab below the rim whose Gaussians cover at least ``cover`` of the
+    disc inside the rim (8 rings of equal area x 16 directions); the rim when none does. The crown and the
+    petioles' feet above the soil are near the axis and do not cover the disc."""
+    rin = 0.8 * r_rim
+    d = np.linalg.norm(points[:, :2] - centre, axis=1)
+    az = np.arctan2(points[:, 1] - centre[1], points[:, 0] - centre[0])
+    for z in np.arange(z_rim, z_rim - depth, -slab):
+        s = (np.abs(points[:, 2] - z) < slab) & (d < rin)
+        cells = np.zeros((8, 16), bool)
+        cells[np.minimum((d[s] / rin) ** 2 * 8, 7).astype(int),
+              np.floor((az[s] + np.pi) / (2 * np.pi) * 16).astype(int) % 16] = True
+        if cells.mean() >= cover:
+            return float(z)
+    return float(z_rim)
+
+
+@dataclass
+class Grid:
+    """A box of cubic voxels: ``origin`` (the first voxel's corner, ``[3]``), ``step`` (edge length), ``shape``."""
+
+    origin: np.ndarray
+    step: float
+    shape: tuple[int, int, int]
+
+    def centres(self) -> np.ndarray:
+        """Voxel centres ``[X*Y*Z, 3]`` in C order of :attr:`shape`."""
+        axes = [self.origin[k] + (np.arange(self.shape[k]) + 0.5) * self.step for k in range(3)]
+        return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+
+    def index(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Voxel indices ``[N, 3]`` of points and whether each lies inside the grid ``[N]``."""
+        ijk = np.floor((points - self.origin) / self.step).astype(np.int64)
+        inside = np.all((ijk >= 0) & (ijk < np.array(self.shape)), axis=1)
+        return np.clip(ijk, 0, np.array(self.shape) - 1), inside
+
+
+def carve(grid: Grid, views: list, depths: list[tuple[np.ndarray, np.ndarray]], scale: float, margin: float):
+    """Per voxel: in how many views it lies in front of the model's surface (free space), and in how many
+    views' frames it lies. ``(free [X, Y, Z], seen [X, Y, Z])`` counts. ``depths``: :func:`depth_map` of each view."""
+    pts = grid.centres()
+    free = np.zeros(len(pts), np.int32)
+    seen = np.zeros(len(pts), np.int32)
+    for v, (d, a) in zip(views, depths):
+        uv, z = camera_points(pts, v)
+        u, w_ = np.floor(uv[:, 0] * scale).astype(np.int64), np.floor(uv[:, 1] * scale).astype(np.int64)
+        ok = (z > 0) & (u >= 0) & (u < d.shape[1]) & (w_ >= 0) & (w_ < d.shape[0])
+        seen += ok
+        k = np.flatnonzero(ok)
+        free[k] += (a[w_[k], u[k]] > 0.5) & (z[k] < d[w_[k], u[k]] - margin)
+    return free.reshape(grid.shape), seen.reshape(grid.shape)
+
+
+def _ball(radius_voxels: int) -> np.ndarray:
+    r = int(radius_voxels)
+    x, y, z = np.mgrid[-r:r + 1, -r:r + 1, -r:r + 1]
+    return x * x + y * y + z * z <= r * r + 1e-9
+
+
+def pot_solid(grid: Grid, free: np.ndarray, seen: np.ndarray, axis_xy: np.ndarray, cube: CubeSpec | None,
+              thickness: float, near_axis: float, min_seen: int) -> np.ndarray:
+    """The thick solid standing around the axis (pot and soil): voxels no view sees through, opened by a ball of
+    ``thickness`` (leaves, petioles and fruit are thinner and vanish), the pieces within ``near_axis`` of the
+    axis, grown back by the ball and one voxel (their surface). ``[X, Y, Z]`` bool."""
+    from scipy import ndimage
+
+    c = grid.centres().reshape(*grid.shape, 3)
+    solid = (free == 0) & (seen >= min_seen) & (c[..., 2] > 0)
+    if cube is not None:  # the cube is a solid too, known exactly: not the pot
+        h = cube.size / 2 + grid.step
+        solid &= ~((np.abs(c[..., 0]) < h) & (np.abs(c[..., 1]) < h) & (c[..., 2] < cube.size + grid.step))
+    r = max(1, int(round(thickness / grid.step)))
+    core = ndimage.binary_erosion(solid, _ball(r))
+    labels, n = ndimage.label(core)
+    if n == 0:
+        return np.zeros(grid.shape, bool)
+    near = np.linalg.norm(c[..., :2] - axis_xy, axis=-1) < near_axis
+    keep = np.unique(labels[core & near])
+    keep = keep[keep > 0]
+    return ndimage.binary_dilation(np.isin(labels, keep), _ball(r + 1))
+
+
+def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: np.ndarray, reach: float = 0.55,
+                 min_in_view: float = 0.85, sfm_reach: float = 0.07, ground_cm: float = 1.0,
+                 pot_margin_cm: float = 1.0, seed: int = 0) -> ObjectModel:
+    """Which Gaussians of a whole-scene model are the plant (see the module docstring).
+
+    ``params``: the model (``means`` ``[N, 3]`` ...); ``views``: its cameras (``train.data.View``);
+    ``cube``: the calibration cube when the model is in its frame (cm, z up), else None;
+    ``sfm_points`` ``[P, 3]``: the poses stage's triangulated points. The plant is looked for within
+    ``reach`` times the cameras' median distance from the axis, above the ground by ``ground_cm``,
+    outside the pot (grown by ``pot_margin_cm``) and the cube, in view in at least ``min_in_view`` of
+    the frames, and within ``sfm_reach`` times the cameras' distance of an SfM point: a blank ceiling
+    or wall can be drawn by Gaussians at any depth, and a quick model sometimes hangs a cloud of them
+    above the plant, where structure from motion, which needs texture seen from several frames,
+    finds nothing.
+    """
+    c2ws = [np.linalg.inv(v.viewmat) for v in views]
+    centre = orbit_axis(c2ws)
+    up = np.array([0.0, 0.0, 1.0]) if cube is not None else up_from_orbit(c2ws, centre)
+    mu = params["means"].numpy().astype(np.float64)
+    rel = mu - centre
+    height = rel @ up
+    radial = np.linalg.norm(rel - np.outer(height, up), axis=1)
+    cams = np.array([M[:3, 3] for M in c2ws]) - centre
+    cam_radial = float(np.median(np.linalg.norm(cams - np.outer(cams @ up, up), axis=1)))
+    region = radial < reach * cam_radial
+    info: dict = {"axis": np.round(centre, 3).tolist(), "reach": round(reach * cam_radial, 3)}
+    if len(sfm_points):
+        from scipy.spatial import cKDTree
+
+        region &= cKDTree(sfm_points).query(mu, distance_upper_bound=sfm_reach * cam_radial)[0] < np.inf
+    if cube is not None:
+        region &= mu[:, 2] > ground_cm
+        h = cube.size / 2 + 0.5
+        region &= ~((np.abs(mu[:, 0]) < h) & (np.abs(mu[:, 1]) < h) & (mu[:, 2] < cube.size + 0.5))
+        opaque = torch.sigmoid(params["opacities"]).numpy().reshape(-1) > 0.2
+        pot = find_pot(mu[opaque], centre[:2], seed=seed)
+        if pot is not None:
+            region &= ~pot.contains(mu, pot_margin_cm)
+            info["pot"] = pot.summary()
+    plant = np.zeros(len(mu), bool)
+    idx = np.flatnonzero(region)
+    plant[idx] = in_view_share(mu[idx], views) >= min_in_view
+    info["plant_gaussians"] = int(plant.sum())
+    return ObjectModel(params=params, plant=plant, cube=cube, axis=centre, up=up, info=info)

@@ -1,0 +1,43 @@
+"""The quick whole-scene Gaussian model the segmenter decides the object in (trained once per capture).
+
+It is an ordinary full-scene 3DGS model (plantsplat's own trainer, ``mode="full"``: no masks) at a low
+resolution with few Gaussians: enough to put every surface of the room and the plant at its place in
+3D. It lives in ``WS/.plantsplat/segment/scene/``; an interrupted run resumes from its checkpoint.
+
+Example:
+    >>> params, views, points = scene_model(Workspace("ws/plant01"), SegmentConfig())   # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from plantsplat.log import get_logger
+from plantsplat.segment.config import SegmentConfig
+from plantsplat.workspace import Workspace
+
+log = get_logger(__name__)
+
+SCENE_DIR = ".plantsplat/segment/scene"
+
+
+def scene_dir(ws: Workspace) -> Path:
+    return ws.root / SCENE_DIR
+
+
+def scene_model(ws: Workspace, cfg: SegmentConfig):
+    """Train (or reuse) the quick model; returns ``(params, views, sfm points [P, 3])`` (tensors detached)."""
+    from plantsplat.train import TrainConfig, train_workspace
+    from plantsplat.train.data import load_scene
+    from plantsplat.train.trainer import load_model
+
+    out = scene_dir(ws)
+    log.info("segment: a quick model of the whole scene (%d steps at %d px) to find the plant in 3D",
+             cfg.scene_steps, cfg.scene_resolution)
+    train_workspace(ws, TrainConfig(
+        mode="full", backend="auto", preset="cpu", iterations=cfg.scene_steps, max_resolution=cfg.scene_resolution,
+        num_downscales=0, sh_degree=1, max_gaussians=cfg.scene_max_gaussians, occluders=False, evaluate=False,
+        test_fraction=0.02, seed=cfg.seed, train_dir=out, metrics_path=out / "metrics.json"))
+    params, _ = load_model(ws, out)
+    scene = load_scene(ws, need_masks=False, load_images=False)
+    return {k: v.detach().cpu() for k, v in params.items()}, scene.views, scene.points
