@@ -40,15 +40,21 @@ TARGETS = {"registered_min": 118, "rotation_error_deg_median": 0.3, "rotation_er
 def run_capture(label: str, video: Path, ground_truth: dict, work: Path) -> dict:
     """Frames + poses on one video; the row of scores against its true cameras."""
     from plantsplat.errors import PlantsplatError
-    from plantsplat.frames import extract_frames
+    from plantsplat.frames import FramesConfig, extract_frames
     from plantsplat.io import read_json
     from plantsplat.poses import PosesConfig, estimate_poses
-    from plantsplat.poses.evaluate import compare_poses, object_scale, reference_cameras, transforms_c2w, true_intrinsics
+    from plantsplat.poses.evaluate import (
+        compare_poses,
+        object_scale,
+        reference_cameras,
+        transforms_c2w,
+        true_intrinsics,
+    )
     from plantsplat.poses.interop import read_colmap
     from plantsplat.workspace import Workspace
 
     ws = Workspace(work / label)
-    extract_frames(video, ws, num=120, max_size=960)
+    extract_frames(video, ws, FramesConfig(num=120, max_size=960))
     src = {f["name"]: f["source_index"] for f in read_json(ws.frames_json)["frames"]}
     ref = reference_cameras(ground_truth, src)
     t = time.perf_counter()
@@ -154,7 +160,8 @@ def main() -> None:
             cap = args.cache / f"s{seed}"
             if not (cap / "ground_truth.json").is_file():
                 generate(SynthConfig(out=cap, seed=seed, force=True))
-            rows.append(run_capture(f"synth_{seed}", cap / "video.mp4", json.loads((cap / "ground_truth.json").read_text()), work))
+            rows.append(run_capture(f"synth_{seed}", cap / "video.mp4",
+                                    json.loads((cap / "ground_truth.json").read_text()), work))
             print(json.dumps({k: v for k, v in rows[-1].items() if k not in ("events", "step_seconds")}), flush=True)
         romi = None if args.no_romi else run_romi(work)
         if romi:

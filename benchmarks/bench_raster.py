@@ -1,4 +1,4 @@
-"""Benchmark of the Gaussian rasterizer (issue 5): CPU backend vs the pure-torch reference.
+"""Benchmark of the Gaussian rasterizer: CPU backend vs the pure-torch reference.
 
 Cases (each run in its own subprocess so peak memory is per case):
 
@@ -9,13 +9,16 @@ Cases (each run in its own subprocess so peak memory is per case):
   b only: it takes minutes). Wall-clock seconds and CPU seconds of the process (all threads) are
   both recorded: on a shared machine the CPU seconds divided by the thread count estimate the idle
   wall time.
-- ``plant448`` / ``plant896``: one training iteration as OpenSplat's CPU build measured it on the 18
-  views of ``romi_virtual_plant_synthetic`` (its ``*_rgb.png`` frames are opaque, the plant on a
-  near-black background; the render is composited over flat grey), 20k Gaussians
-  sampled on ``ground_truth/VirtualPlant.obj`` (open3d), SH degree 3, no densification: the
-  trainer's own step (``train.model.init_params`` / ``make_optimizers``, ``trainer.render`` and
-  ``trainer.photometric_loss``: loss 0.8 L1 + 0.2 (1 - SSIM) of the render over the background),
-  Adam step. OpenSplat: 0.062 s and 0.217 s per iteration, peak memory 0.4 and 1.0 GB.
+- ``plant448`` / ``plant896``: one training iteration on the 18 views of
+  ``romi_virtual_plant_synthetic`` (its ``*_rgb.png`` frames are opaque, the plant on a near-black
+  background; the render is composited over flat grey), 20k Gaussians sampled on
+  ``ground_truth/VirtualPlant.obj`` (open3d; the mesh is Y up and is turned onto the cameras' Z-up
+  world, where 99.95 % of the points fall inside the views), SH degree 3, no densification: the
+  trainer's own step (``train.model.init_params`` / ``make_optimizers``, ``train.render.render`` and
+  ``train.loss.photometric_loss``: loss 0.8 L1 + 0.2 (1 - SSIM) of the render over the background),
+  Adam step. Reference: OpenSplat 1.1.5's CPU build on the same scene (20k Gaussians, SH 3, no
+  densification), run back to back with plantsplat on this machine type (2-core AMD EPYC) in 2026-11:
+  0.10 s and 0.31 s per iteration (``OPENSPLAT``).
 
 Usage::
 
@@ -44,7 +47,8 @@ SYNTH = {  # name: (N, width, height, target Gaussians per pixel)
     "b": (100_000, 480, 270, 25.0),
     "c": (200_000, 960, 540, 25.0),
 }
-OPENSPLAT = {"plant448": (0.062, 0.4), "plant896": (0.217, 1.0)}
+# OpenSplat 1.1.5 CPU build, seconds per iteration on the plant cases (see the module docstring)
+OPENSPLAT = {"plant448": 0.10, "plant896": 0.31}
 TARGETS = {"b_fwd_bwd_s": 0.1, "c_fwd_bwd_s": 0.3, "c_render_s": 0.08, "c_peak_gb": 1.5, "b_speedup_vs_reference": 20.0}
 
 
@@ -120,8 +124,8 @@ def synth_scene(n: int, width: int, height: int, per_px: float, seed: int = 0):
 def run_synth(name: str, reps: int, with_reference: bool) -> dict:
     import torch
 
-    from plantsplat.raster import rasterize
     from plantsplat.raster import cpu as C
+    from plantsplat.raster import rasterize
     from plantsplat.raster.cpu_projection import project_cpu
 
     n, W, H, per_px = SYNTH[name]
@@ -200,7 +204,8 @@ def sample_plant_points(n: int, out: Path) -> None:
     mesh = o3d.io.read_triangle_mesh(str(obj), enable_post_processing=True)
     o3d.utility.random.seed(0)
     pts = np.asarray(mesh.sample_points_uniformly(number_of_points=n).points, np.float32)
-    np.save(out, pts)
+    y_up_to_z_up = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], np.float32)  # (x, y, z) -> (x, -z, y)
+    np.save(out, pts @ y_up_to_z_up.T)
 
 
 def run_plant(name: str, points_file: Path, iters: int) -> dict:
@@ -209,8 +214,9 @@ def run_plant(name: str, points_file: Path, iters: int) -> dict:
     import torch
 
     from plantsplat.io import read_image
+    from plantsplat.train.loss import photometric_loss
     from plantsplat.train.model import init_params, make_optimizers
-    from plantsplat.train.trainer import photometric_loss, render
+    from plantsplat.train.render import render
 
     size = 448 if name == "plant448" else 896
     rss_base = _peak_gb()
@@ -257,14 +263,14 @@ def run_plant(name: str, points_file: Path, iters: int) -> dict:
         losses.append(step(i))
         times.append(time.perf_counter() - t0)
         cpu_times.append(time.process_time() - c0)
-    ref_s, ref_gb = OPENSPLAT[name]
+    ref_s = OPENSPLAT[name]
     mean_s = sum(times) / len(times)
     return {
         "size": size, "gaussians": n, "iterations": iters, "s_per_iter_mean": mean_s, "s_per_iter_median": _median(times),
         "cpu_s_per_iter_mean": sum(cpu_times) / len(cpu_times),
         "opensplat_s_per_iter": ref_s, "speedup_vs_opensplat": ref_s / mean_s, "loss_first": losses[0],
         "loss_last": losses[-1], "peak_rss_gb": _peak_gb(), "rss_after_imports_gb": rss_base,
-        "opensplat_peak_gb": ref_gb, "times": [round(t, 4) for t in times],
+        "times": [round(t, 4) for t in times],
     }
 
 

@@ -1,7 +1,7 @@
 """Benchmark of `plantsplat report` on a 50k-Gaussian plant: build time, file size, open time and orbit
 frame rate in headless Chromium (file://, WebGL on SwiftShader, i.e. on the CPU).
 
-Targets (issue 9): the report opens in under 3 s, orbits smoothly, and stays under 20 MB.
+Targets: the report opens in under 3 s, orbits smoothly, and stays under 20 MB.
 "Open time" is navigation start -> first frame with the splat drawn (measured in the page), the
 median of ``--opens`` fresh page loads. The orbit turns the camera a full circle in ``--orbit-frames``
 displayed frames with the viewer's defaults (after a 10-frame orbit during which it adapts: lower
@@ -32,9 +32,8 @@ sys.path.insert(0, str(ROOT / "src"))
 
 
 def machine_info() -> dict:
-    from plantsplat.resources import machine_info as common
-
     from plantsplat.report.browser import find_chromium
+    from plantsplat.resources import machine_info as common
 
     exe = find_chromium()
     chromium = ""
@@ -59,7 +58,11 @@ def main(argv=None) -> int:
     os.environ.setdefault("PLANTSPLAT_NO_PROGRESS", "1")
     from plantsplat.io import write_json_atomic
     from plantsplat.report import write_report
-    from plantsplat.report.browser import ReportBrowser, find_chromium, playwright_available
+    from plantsplat.report.browser import (
+        ReportBrowser,
+        find_chromium,
+        playwright_available,
+    )
     from plantsplat.report.testing import make_synthetic_workspace
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

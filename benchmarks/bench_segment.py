@@ -87,12 +87,13 @@ def score(ws: Workspace, truth: dict[str, np.ndarray]) -> dict:
 
 def prepare(video: Path, ws: Workspace) -> None:
     """Frames and poses as a user runs them (kept from an earlier run of this benchmark)."""
-    from plantsplat.frames import extract_frames
+    from plantsplat.frames import FramesConfig, extract_frames
     from plantsplat.poses import estimate_poses
 
     if not ws.frames_json.is_file():
-        extract_frames(video, ws, num=120, max_size=960)
-    estimate_poses(ws)
+        extract_frames(video, ws, FramesConfig(num=120, max_size=960))
+    if not ws.poses_json.is_file() or read_json(ws.poses_json).get("status") != "ok":
+        estimate_poses(ws)
 
 
 def foreign(cap: Path, ws: Workspace) -> dict:
@@ -102,7 +103,7 @@ def foreign(cap: Path, ws: Workspace) -> dict:
         p = cap / "masks" / f"{f['source_index']:05d}.png"
         if p.is_file():
             truth[f["name"]] = read_image(p, "gray") > 127
-    segment_workspace(ws, SegmentConfig(), force=True)
+    segment_workspace(ws, SegmentConfig())
     return score(ws, truth)
 
 
@@ -115,7 +116,7 @@ def synthetic(seed: int, cache: Path, ws: Workspace) -> dict:
     prepare(cap / "video.mp4", ws)
     truth = {f["name"]: read_image(cap / "masks" / f"frame_{f['source_index']:05d}.png", "gray") > 127
              for f in read_json(ws.frames_json)["frames"]}
-    segment_workspace(ws, SegmentConfig(), force=True)
+    segment_workspace(ws, SegmentConfig())
     return score(ws, truth)
 
 
@@ -135,7 +136,7 @@ def romi_virtual(ws: Workspace) -> dict | None:
     for p in sorted((src / "images").glob("*_rgb.png")):
         truth[p.name] = read_image(src / "images" / p.name.replace("_rgb", "_background"), "gray") < 128
     estimate_poses(ws, PosesConfig(import_colmap=src / "colmap_text" / "sparse" / "0"))
-    segment_workspace(ws, SegmentConfig(), force=True)
+    segment_workspace(ws, SegmentConfig())
     return score(ws, truth)
 
 

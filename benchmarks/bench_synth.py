@@ -1,6 +1,6 @@
 """Benchmark of `plantsplat synth`: seconds per frame and per 120-frame 540x960 capture.
 
-Target (issue 2): a 120-frame 540x960 capture, H.264 encoding included, in under 60 s on the 2-core
+Target: a 120-frame 540x960 capture, H.264 encoding included, in under 60 s on the 2-core
 machine. Wall time depends on what else runs on the machine, so the result also records the process
 CPU time (llvmpipe's render threads included), the load average before and after, and per-stage times.
 

@@ -11,8 +11,8 @@ here: plantsplat's 3d segmenter). Its fair opponent is `object_segmented` (synth
 --no-segmented): the object model trained on plantsplat's segmenter's masks of the frames, as the paper
 trains on SAM-2's, scored against the same ground-truth-masked test frames as every other row.
 
-    .venv/bin/python benchmarks/bench_train.py                       # the issue's setting (slow)
-    .venv/bin/python benchmarks/bench_train.py --poses sfm --skip-romi --out benchmarks/results/train_sfm.json
+    .venv/bin/python benchmarks/bench_train.py                       # the benchmark as recorded (slow)
+    .venv/bin/python benchmarks/bench_train.py --poses sfm --skip-romi --out /tmp/train_sfm.json
         # the same captures through the poses stage: COLMAP cameras and SfM points for both modes
     .venv/bin/python benchmarks/bench_train.py --frames 36 --width 180 --height 320 --iterations 300
     .venv/bin/python benchmarks/bench_train.py --seeds 0 --modes object --skip-romi --frames 36 \
@@ -75,7 +75,8 @@ def synth_workspace(cap: Path, dst: Path, poses: str = "true") -> tuple[Workspac
 
 def detail_reference(ws: Workspace, split_path: Path, sigmas=(0.5, 0.8, 1.0)) -> dict:
     """Foreground PSNR of each test frame against itself blurred by a Gaussian of ``sigma`` px, over
-    the mask's pixels at the frames' own resolution (mean over test views): how much of the foreground's signal lies at the scale of
+    the mask's pixels at the frames' own resolution (mean over test views): how much of the foreground's signal lies at
+    the scale of
     a pixel, a yardstick for the models' foreground PSNR (a render as sharp as the frame blurred by
     0.8 px scores about the 0.8 figure)."""
     import cv2
@@ -123,7 +124,8 @@ def object_ceiling(ws: Workspace, cap: Path, split_path: Path) -> dict:
 
 
 def run_modes(ws: Workspace, iterations: int | None, max_res: int | None, modes=("object", "full")) -> dict:
-    from plantsplat.train.trainer import TrainConfig, train_workspace
+    from plantsplat.train.config import TrainConfig
+    from plantsplat.train.trainer import train_workspace
 
     res = {}
     for mode in modes:
@@ -155,8 +157,9 @@ def object_on_segmented_masks(ws: Workspace, iterations: int | None, max_res: in
 
     from plantsplat.segment import mask_iou, segment_workspace
     from plantsplat.segment.config import SegmentConfig
+    from plantsplat.train.config import TrainConfig
     from plantsplat.train.evaluate import evaluate_workspace
-    from plantsplat.train.trainer import TrainConfig, train_workspace
+    from plantsplat.train.trainer import train_workspace
 
     seg = Workspace(ws.root.parent / f"{ws.root.name}_segmented")
     shutil.copytree(ws.root, seg.root, ignore=lambda d, names: [n for n in names if n.startswith(("train_", "metrics_"))

@@ -48,8 +48,8 @@ def machine_info() -> dict:
 
 def synth_scene(seed: int, work: Path) -> tuple[dict, dict]:
     """Ground-truth scene cloud and ground_truth.json of synth seed ``seed`` (tiny render, GT is exact)."""
+    from plantsplat.ply import read_point_cloud as read_ply
     from plantsplat.synth import SynthConfig, generate
-    from plantsplat.synth.groundtruth import read_ply
 
     out = work / f"seed_{seed:03d}"
     if not (out / "ground_truth.json").is_file():
@@ -96,7 +96,13 @@ def main() -> int:
 
     from plantsplat.io import write_json_atomic
     from plantsplat.log import setup_logging
-    from plantsplat.traits import TraitSettings, accuracy_table, format_table, measure_traits, scatter_plots
+    from plantsplat.traits import (
+        TraitsConfig,
+        accuracy_table,
+        format_table,
+        measure_traits,
+        scatter_plots,
+    )
 
     setup_logging(quiet=True)
     info = machine_info()
@@ -170,7 +176,7 @@ def main() -> int:
         "reconstructions": "not run: training one splat per plant is beyond this CPU-only benchmark",
         "tables": tables,
         "tables_markdown": {v: format_table({k: tables[v][k] for k in keys}) for v in variants},
-        "robust_trim": TraitSettings().trim,
+        "robust_trim": TraitsConfig().trim,
         "robust_tables": robust_tables,
         "robust_tables_markdown": {v: format_table(robust_tables[v]) for v in variants},
         "mean_seconds_per_plant": seconds,
@@ -182,7 +188,7 @@ def main() -> int:
     for v in variants:
         print(f"\n### {v}  (mean {seconds[v]:.2f} s per plant)\n")
         print(out["tables_markdown"][v])
-        print(f"robust (trimmed {TraitSettings().trim}) height/widths:\n")
+        print(f"robust (trimmed {TraitsConfig().trim}) height/widths:\n")
         print(out["robust_tables_markdown"][v])
     print(json.dumps(targets))
     print(f"wrote {args.out}")

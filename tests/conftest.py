@@ -7,6 +7,9 @@
   ``clean=True``). Treat the folder as read-only: other tests share it.
 - ``datasets_dir``: the shared real/virtual datasets folder (``PLANTSPLAT_DATASETS`` overrides
   ``<repo>/../shared/datasets``), or a skip with a message when it is absent.
+
+Markers: ``cuda`` tests are skipped where CUDA is absent; ``slow`` marks whole-pipeline runs (a quick
+pass: ``pytest -m "not slow"``).
 """
 
 from __future__ import annotations
@@ -17,6 +20,18 @@ from pathlib import Path
 import pytest
 
 os.environ["PLANTSPLAT_NO_PROGRESS"] = "1"
+
+
+def pytest_collection_modifyitems(config, items):
+    """Skip ``cuda`` tests cleanly on machines without CUDA."""
+    import torch
+
+    if torch.cuda.is_available():
+        return
+    skip = pytest.mark.skip(reason="needs CUDA (none on this machine)")
+    for item in items:
+        if "cuda" in item.keywords:
+            item.add_marker(skip)
 
 
 @pytest.fixture(scope="session")

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from plantsplat.batch import BatchOptions, read_manifest, run_batch
+from plantsplat.batch import BatchConfig, read_manifest, run_batch
 from plantsplat.cli import main
 from plantsplat.errors import PlantsplatError
 
@@ -52,7 +52,7 @@ def test_failing_plant_does_not_stop_others_and_exit_code(tmp_path):
     (tmp_path / "p2" / "notes.txt").write_text("no images here")
     m = _manifest(tmp_path, [("p1", "p1"), ("p2", "p2"), ("p3", "nope.mov")])
     out = tmp_path / "out"
-    summary = run_batch(m, out, BatchOptions(workers=1))
+    summary = run_batch(m, out, BatchConfig(workers=1))
     status = {p["plant_id"]: p for p in summary["plants"]}
     assert status["p1"]["status"] == "failed" and "p1" in status["p1"]["error"]
     assert status["p2"]["status"] == "failed"

@@ -89,7 +89,8 @@ def detections_for(c2ws: dict, cube: CubeSpec, rng, noise_px=0.3):
 def random_sim(rng):
     from scipy.spatial.transform import Rotation
 
-    return float(rng.uniform(0.02, 0.2)), Rotation.random(random_state=int(rng.integers(1 << 30))).as_matrix(), rng.normal(0, 3, 3)
+    return float(rng.uniform(0.02,
+                             0.2)), Rotation.random(random_state=int(rng.integers(1 << 30))).as_matrix(), rng.normal(0, 3, 3)
 
 
 def test_calibrate_recovers_similarity():
@@ -129,7 +130,8 @@ def test_calibrate_rejects_bad_detection_and_flags_wrong_model():
     from scipy.spatial.transform import Rotation
 
     Rz = Rotation.from_euler("z", 40, degrees=True).as_matrix()
-    wrong = {n: (np.block([[Rz, np.zeros((3, 1))], [np.zeros((1, 3)), 1]]) @ M if i % 2 else M) for i, (n, M) in enumerate(sorted(gt.items()))}
+    turn = np.block([[Rz, np.zeros((3, 1))], [np.zeros((1, 3)), 1]])
+    wrong = {n: (turn @ M if i % 2 else M) for i, (n, M) in enumerate(sorted(gt.items()))}
     cal2 = calibrate(make_rec(wrong), det, cube)
     assert cal2 is None or not cal2.consistent
 
@@ -183,7 +185,8 @@ def test_broken_imports_are_one_line_errors(tmp_path):
     (tmp_path / "t.json").write_text("{not json")
     with pytest.raises(PlantsplatError, match="not valid JSON"):
         read_transforms(tmp_path / "t.json")
-    (tmp_path / "t2.json").write_text(json.dumps({"frames": [{"file_path": "a.png", "transform_matrix": [[1]]}], "fl_x": 1, "w": 2, "h": 2}))
+    (tmp_path / "t2.json").write_text(json.dumps({"frames": [{"file_path": "a.png", "transform_matrix": [[1]]}],
+                                                  "fl_x": 1, "w": 2, "h": 2}))
     with pytest.raises(PlantsplatError, match="4x4"):
         read_transforms(tmp_path / "t2.json")
 
@@ -203,8 +206,8 @@ def test_cli_bad_input(tmp_path, capsys):
     assert main(["poses", str(ws)]) == 1
     err = capsys.readouterr().err
     assert "only 2 frame(s)" in err and "Traceback" not in err
-    assert main(["poses", str(tmp_path / "nowhere")]) == 1
-    assert "missing" in capsys.readouterr().err
+    assert main(["poses", str(tmp_path / "nowhere")]) == 2
+    assert "nowhere: no such folder" in capsys.readouterr().err
     ws = _workspace(tmp_path, 4)
     (tmp_path / "bad").mkdir()
     assert main(["poses", str(ws), "--import-colmap", str(tmp_path / "bad")]) == 1
@@ -228,10 +231,36 @@ def test_import_transforms_keeps_poses_and_writes_outputs(tmp_path, capsys):
     assert abs(err["similarity"]["scale"] - 1) < 1e-9  # not rescaled
     assert read_colmap(ws / "sparse" / "0").num_reg_images() == 8
     assert (ws / "sparse_text" / "0" / "images.txt").is_file() and (ws / "sparse_points.ply").is_file()
-    # resume: a second run with the same options reuses the outputs
+    # resume: a second run with the same options and frames reuses the outputs
     mtime = (ws / "poses.json").stat().st_mtime_ns
     assert main(["poses", str(ws), "--import-transforms", str(tmp_path / "user_transforms.json")]) == 0
     assert (ws / "poses.json").stat().st_mtime_ns == mtime
+    # a damaged output is not up to date: the same command writes it again (issue 34, case 7)
+    for damaged in (ws / "transforms.json", ws / "sparse" / "0" / "images.bin"):
+        damaged.write_bytes(damaged.read_bytes()[:50])
+        assert main(["poses", str(ws), "--import-transforms", str(tmp_path / "user_transforms.json")]) == 0
+        assert (ws / "poses.json").stat().st_mtime_ns != mtime
+        mtime = (ws / "poses.json").stat().st_mtime_ns
+    assert read_colmap(ws / "sparse" / "0").num_reg_images() == 8
+    json.loads((ws / "transforms.json").read_text())
+
+
+def test_a_failed_poses_stage_is_never_built_on(tmp_path, capsys):
+    """Poses that fail their checks (2 of 8 frames posed) fail again on re-run (exit 3), and the next
+    stages refuse to start on them (issue 34, case 1)."""
+    gt = orbit(8)
+    ws = _workspace(tmp_path, 8)
+    few = {k: gt[k] for k in sorted(gt)[:2]}
+    write_transforms(make_rec(few), tmp_path / "user_transforms.json")
+    for _ in range(2):
+        assert main(["poses", str(ws), "--import-transforms", str(tmp_path / "user_transforms.json")]) == 3
+        err = capsys.readouterr().err
+        assert "registered" in err and "Traceback" not in err
+    assert json.loads((ws / "poses.json").read_text())["status"] == "failed"
+    for cmd in (["segment", str(ws)], ["train", str(ws)]):
+        assert main(cmd) == 1
+        err = capsys.readouterr().err
+        assert "the poses stage failed" in err and "plantsplat poses" in err, err
 
 
 def video_orbit(steps, ring_change: bool):
@@ -292,7 +321,7 @@ def test_face_offsets_find_a_face_out_of_place():
 
 
 def test_checks_say_what_failed():
-    from plantsplat.poses.checks import Check
+    from plantsplat.checks import Check
 
     ok, bad = Check("registered_share", 0.95, 0.8, ">="), Check("cube_reprojection_px", 7.2, 3.0, "<=", "median")
     assert ok.passed and not bad.passed and not Check("x", None, 1.0).passed

@@ -428,7 +428,7 @@ def test_cli_style_error_is_one_line_plantsplat_error():
     assert "\n" not in str(exc.value)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="gsplat backend needs CUDA (none on this machine)")
+@pytest.mark.cuda
 def test_gsplat_backend_matches_cpu():  # pragma: no cover - needs a GPU
     pytest.importorskip("gsplat")
     params = _scene(200, 13)

@@ -11,7 +11,12 @@ import numpy as np
 import pytest
 
 from plantsplat.report import write_batch_report, write_report
-from plantsplat.report.browser import ReportBrowser, find_chromium, open_report, playwright_available
+from plantsplat.report.browser import (
+    ReportBrowser,
+    find_chromium,
+    open_report,
+    playwright_available,
+)
 from plantsplat.report.testing import make_synthetic_workspace
 
 pytestmark = [

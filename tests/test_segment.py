@@ -14,10 +14,16 @@ import torch
 from plantsplat.cube import CubeSpec
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_image, read_json
+from plantsplat.pipeline import segment_stage
 from plantsplat.segment import mask_iou, segment_workspace
 from plantsplat.segment.config import SegmentConfig
 from plantsplat.segment.frame import object_prior, refine
-from plantsplat.segment.object3d import ObjectModel, find_pot, in_view_share, object_model
+from plantsplat.segment.object3d import (
+    ObjectModel,
+    find_pot,
+    in_view_share,
+    object_model,
+)
 from plantsplat.train.data import View
 from plantsplat.workspace import Workspace
 
@@ -218,9 +224,44 @@ def test_bad_workspaces(tmp_path, capsys):
     ws = _workspace(tmp_path)
     with pytest.raises(PlantsplatError, match="plantsplat poses"):
         segment_workspace(ws)
-    assert main(["segment", str(tmp_path / "none")]) == 1
+    assert main(["segment", str(tmp_path / "none")]) == 2
     err = capsys.readouterr().err
-    assert "images" in err and "Traceback" not in err
+    assert "none: no such folder" in err and "Traceback" not in err
+
+
+def test_interrupted_segment_leaves_no_mix_and_runs_again(tmp_path, monkeypatch):
+    """`segment --force` interrupted half way keeps the previous masks whole, and the next run is not
+    "up to date" (issue 34, case 5)."""
+    import plantsplat.segment as seg
+
+    ws = _workspace(tmp_path, n=4)
+    src = tmp_path / "mine"
+    src.mkdir()
+    for i in range(4):
+        m = np.zeros((48, 64), np.uint8)
+        m[5:20, 5 + i:25 + i] = 255
+        cv2.imwrite(str(src / f"frame_{i:05d}.png"), m)
+    segment_stage(ws, SegmentConfig(import_masks=src, preview=False))
+    before = {n: read_image(ws.masks_dir / n, "gray") for n in ws.image_names()}
+    for i in range(4):  # the user's masks change; the stage is forced and interrupted after two files
+        cv2.imwrite(str(src / f"frame_{i:05d}.png"), np.full((48, 64), 255, np.uint8))
+    real, calls = seg._write_png, []
+
+    def interrupted(path, img):
+        calls.append(path)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        real(path, img)
+
+    monkeypatch.setattr(seg, "_write_png", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        segment_stage(ws, SegmentConfig(import_masks=src, preview=False), force=True)
+    for n, m in before.items():
+        assert np.array_equal(read_image(ws.masks_dir / n, "gray"), m), n
+    monkeypatch.setattr(seg, "_write_png", real)
+    info = segment_stage(ws, SegmentConfig(import_masks=src, preview=False))
+    assert not info.get("up_to_date")
+    assert all(read_image(ws.masks_dir / n, "gray").min() == 255 for n in ws.image_names())
 
 
 # ------------------------------------------------------------------ a small capture end to end
@@ -233,7 +274,7 @@ def segmented(synth_capture, tmp_path_factory):
     ws = Workspace(tmp_path_factory.mktemp("segment_e2e") / "ws")
     shutil.copytree(cap / "frames", ws.images_dir)
     estimate_poses(ws, PosesConfig())
-    info = segment_workspace(ws)
+    info = segment_stage(ws, SegmentConfig())
     return cap, ws, info
 
 
@@ -255,12 +296,12 @@ def test_small_capture_masks_against_truth(segmented):
 
 
 def test_up_to_date_and_renders_cut_like_frames(segmented):
-    from plantsplat.segment import segment_images
+    from plantsplat.segment.stored import segment_images
     from plantsplat.train.data import load_scene
 
     cap, ws, info = segmented
     before = ws.segment_json.stat().st_mtime_ns
-    assert segment_workspace(ws)["fingerprint"] == info["fingerprint"]
+    assert segment_stage(ws, SegmentConfig())["up_to_date"]  # same frames, poses and options: not redone
     assert ws.segment_json.stat().st_mtime_ns == before
     name = next(r["name"] for r in info["frames"] if r["name"] not in {e["name"] for e in info["excluded"]})
     # a render is drawn through the undistorted pinhole camera, as the trainer sees the frame

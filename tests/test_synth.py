@@ -81,7 +81,8 @@ def test_ground_truth_traits_recomputed_independently(synth_capture):
     assert v["x"].dtype == np.float32 and v["organ"].dtype == np.uint8 and v["instance"].dtype == np.int32
     xyz = np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float64)
     assert set(np.unique(v["organ"])) <= {1, 2, 3, 4, 5, 6} and {1, 2, 3, 4} <= set(np.unique(v["organ"]))
-    assert gt["height_cm"] == pytest.approx(xyz[:, 2].max() - xyz[:, 2].min(), abs=1e-3)
+    assert gt["height_extent_cm"] == pytest.approx(xyz[:, 2].max() - xyz[:, 2].min(), abs=1e-3)
+    assert gt["height_cm"] == pytest.approx(xyz[:, 2].max() - gt["plant"]["soil_z_cm"], abs=1e-3)  # from the soil
     xy = xyz[:, :2] - xyz[:, :2].mean(0)
     _, _, vt = np.linalg.svd(xy, full_matrices=False)  # rows: major, minor axis
     proj = xy @ vt.T
@@ -216,7 +217,6 @@ def test_rendered_cube_matches_K_and_c2w_exactly(synth_capture):
             lin, ids = r.render(c2w)
             eye = c2w[:3, 3]
             want = np.zeros((H, W), np.int32)
-            depth = np.full((H, W), np.inf)
             for i, face in enumerate(FACE_NAMES):
                 c, n, rt, up = cube.face_frame(face)
                 corners = np.stack([c + (a * rt + b * up) * 5 for a, b in ((-1, 1), (1, 1), (1, -1), (-1, -1))])

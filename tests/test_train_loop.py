@@ -11,6 +11,8 @@ import pytest
 
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_json, write_json_atomic
+from plantsplat.train.checkpoint import load_model
+from plantsplat.train.config import TrainConfig
 from plantsplat.workspace import Workspace
 
 ITERS = 80
@@ -51,7 +53,7 @@ def trained(synth_capture, tmp_path_factory):
 
     trainer.photometric_loss = spy
     try:
-        summary = trainer.train_workspace(ws, trainer.TrainConfig(iterations=ITERS, max_resolution=96, num_downscales=0,
+        summary = trainer.train_workspace(ws, TrainConfig(iterations=ITERS, max_resolution=96, num_downscales=0,
                                                                   init_points=4000, seed=0))
     finally:
         trainer.photometric_loss = orig
@@ -89,7 +91,7 @@ def test_background_gaussians_vanish(trained):
     import torch
 
     from plantsplat.train import data as D
-    from plantsplat.train.trainer import load_model
+    from plantsplat.train.checkpoint import load_model
 
     ws, summary, _ = trained
     params, _ = load_model(ws)
@@ -109,7 +111,8 @@ def test_full_mode_keeps_background(trained, tmp_path):
     import torch
 
     from plantsplat.train import data as D
-    from plantsplat.train.trainer import TrainConfig, load_model, train_workspace
+    from plantsplat.train.checkpoint import load_model
+    from plantsplat.train.trainer import TrainConfig, train_workspace
 
     ws_obj, _, _ = trained
     ws = Workspace(tmp_path / "ws")
@@ -147,9 +150,11 @@ def test_export_round_trip(trained):
     import torch
     from plyfile import PlyData
 
+    from plantsplat.pipeline import export_stage
+    from plantsplat.ply import read_splat as read_splat_ply
     from plantsplat.train import export_workspace
-    from plantsplat.train.export import read_splat_ply
-    from plantsplat.train.trainer import load_model
+    from plantsplat.train.checkpoint import load_model
+    from plantsplat.train.export import ExportConfig
 
     ws, _, _ = trained
     info = export_workspace(ws)
@@ -162,15 +167,21 @@ def test_export_round_trip(trained):
     v = PlyData.read(str(ws.points_ply))["vertex"]
     assert v.data.dtype.names == ("x", "y", "z", "red", "green", "blue", "opacity", "scale_0", "scale_1", "scale_2")
     assert len(v.data) == info["n_points"] and (np.asarray(v["opacity"]) >= 0.1).all()
-    assert export_workspace(ws)["skipped"] is True  # up to date: nothing rewritten
+    export_stage(ws, ExportConfig())
+    stamp = ws.splat_ply.stat().st_mtime_ns
+    assert export_stage(ws, ExportConfig())["up_to_date"] and ws.splat_ply.stat().st_mtime_ns == stamp
+    ws.splat_ply.write_bytes(ws.splat_ply.read_bytes()[:100])  # a truncated export is written again (issue 34)
+    assert not export_stage(ws, ExportConfig()).get("up_to_date")
+    assert len(read_splat_ply(ws.splat_ply)["means"]) == len(g["means"])
 
 
 def test_resume_after_interrupt(synth_capture, tmp_path, monkeypatch):
+    from plantsplat.pipeline import train_stage
     from plantsplat.train import trainer
-    from plantsplat.train.model import load_checkpoint
+    from plantsplat.train.checkpoint import load_checkpoint
 
     ws = synth_workspace(synth_capture(), tmp_path / "ws", every=4)
-    cfg = trainer.TrainConfig(iterations=16, max_resolution=64, num_downscales=0, checkpoint_seconds=0,
+    cfg = TrainConfig(iterations=16, max_resolution=64, num_downscales=0, checkpoint_seconds=0,
                               evaluate=False, init_points=2000)
     real_render = trainer.render
     calls = {"n": 0}
@@ -183,17 +194,17 @@ def test_resume_after_interrupt(synth_capture, tmp_path, monkeypatch):
 
     monkeypatch.setattr(trainer, "render", flaky)
     with pytest.raises(KeyboardInterrupt):
-        trainer.train_workspace(ws, cfg)
+        train_stage(ws, cfg)
     ck = load_checkpoint(ws.train_dir / "checkpoint.pt")
     assert ck["step"] == 7 and not (ws.train_dir / "model.pt").exists()
     monkeypatch.setattr(trainer, "render", real_render)
-    s = trainer.train_workspace(ws, cfg)
+    s = train_stage(ws, cfg)
     assert s["resumed"] is True and s["iterations"] == 16
     assert (ws.train_dir / "model.pt").is_file() and not (ws.train_dir / "checkpoint.pt").exists()
-    # a finished model is not retrained; a different mode is refused with a clear message
-    assert trainer.train_workspace(ws, cfg)["n_gaussians"] == s["n_gaussians"]
-    with pytest.raises(PlantsplatError, match="--force"):
-        trainer.train_workspace(ws, trainer.TrainConfig(mode="full", iterations=16, evaluate=False))
+    # a finished model is not retrained; other options train afresh (never from the other run's files)
+    assert train_stage(ws, cfg)["up_to_date"]
+    other = train_stage(ws, TrainConfig(mode="full", iterations=16, max_resolution=64, num_downscales=0, evaluate=False))
+    assert other["resumed"] is False and other["mode"] == "full"
 
 
 def test_nan_loss_stops_and_keeps_checkpoint(synth_capture, tmp_path, monkeypatch):
@@ -213,7 +224,7 @@ def test_nan_loss_stops_and_keeps_checkpoint(synth_capture, tmp_path, monkeypatc
         return out
 
     monkeypatch.setattr(trainer, "render", poisoned)
-    cfg = trainer.TrainConfig(iterations=10, max_resolution=64, num_downscales=0, checkpoint_seconds=0,
+    cfg = TrainConfig(iterations=10, max_resolution=64, num_downscales=0, checkpoint_seconds=0,
                               evaluate=False, init_points=2000)
     with pytest.raises(PlantsplatError, match="NaN.*checkpoint \\(step 4\\)"):
         trainer.train_workspace(ws, cfg)
@@ -253,10 +264,10 @@ def test_nan_gradients_are_skipped_and_counted(synth_capture, tmp_path, monkeypa
 
     ws = synth_workspace(synth_capture(), tmp_path / "ws", every=4)
     _poison_grads(monkeypatch, trainer, {3})
-    cfg = trainer.TrainConfig(iterations=10, max_resolution=64, num_downscales=0, evaluate=False, init_points=2000)
+    cfg = TrainConfig(iterations=10, max_resolution=64, num_downscales=0, evaluate=False, init_points=2000)
     s = trainer.train_workspace(ws, cfg)
     assert s["nonfinite_grad_steps"] == 1 and s["nonfinite_grad_gaussians"] > 0
-    params, _ = trainer.load_model(ws)
+    params, _ = load_model(ws)
     assert all(bool(torch.isfinite(v).all()) for v in params.values())
 
 
@@ -265,8 +276,8 @@ def test_nan_gradients_that_persist_stop_the_run(synth_capture, tmp_path, monkey
 
     ws = synth_workspace(synth_capture(), tmp_path / "ws", every=4)
     _poison_grads(monkeypatch, trainer, set(range(2, 100)))
-    monkeypatch.setattr(trainer, "_MAX_NONFINITE_RUN", 3)
-    cfg = trainer.TrainConfig(iterations=10, max_resolution=64, num_downscales=0, evaluate=False, init_points=2000)
+    monkeypatch.setattr(trainer, "MAX_NONFINITE_RUN", 3)
+    cfg = TrainConfig(iterations=10, max_resolution=64, num_downscales=0, evaluate=False, init_points=2000)
     with pytest.raises(PlantsplatError, match="gradients were NaN/inf 3 steps in a row"):
         trainer.train_workspace(ws, cfg)
 
@@ -313,10 +324,12 @@ def test_occluders_from_sfm_points_resume_and_stay_out_of_the_export(synth_captu
     """With SfM points (here: points of the synthetic scene, pot and platform included) object mode
     adds occluders; they survive an interrupted run, are stored beside the model and the export
     holds only the model's own Gaussians."""
+    from plantsplat.pipeline import train_stage
+    from plantsplat.ply import read_splat as read_splat_ply
     from plantsplat.train import trainer
-    from plantsplat.train.data import read_ply_points
-    from plantsplat.train.export import export_workspace, read_splat_ply
-    from plantsplat.train.model import load_checkpoint
+    from plantsplat.train.checkpoint import load_checkpoint
+    from plantsplat.train.data import sparse_points as read_ply_points
+    from plantsplat.train.export import export_workspace
 
     cap = synth_capture()
     ws = synth_workspace(cap, tmp_path / "ws", every=4)
@@ -330,7 +343,7 @@ def test_occluders_from_sfm_points_resume_and_stay_out_of_the_export(synth_captu
     for i, c in enumerate(("red", "green", "blue")):
         v[c] = cols[pick, i]
     PlyData([PlyElement.describe(v, "vertex")]).write(str(ws.sparse_points_ply))
-    cfg = trainer.TrainConfig(iterations=16, max_resolution=64, num_downscales=0, checkpoint_seconds=0, evaluate=False)
+    cfg = TrainConfig(iterations=16, max_resolution=64, num_downscales=0, checkpoint_seconds=0, evaluate=False)
     real_render = trainer.render
     calls = {"n": 0, "occ": 0}
 
@@ -344,13 +357,13 @@ def test_occluders_from_sfm_points_resume_and_stay_out_of_the_export(synth_captu
 
     monkeypatch.setattr(trainer, "render", flaky)
     with pytest.raises(KeyboardInterrupt):
-        trainer.train_workspace(ws, cfg)
+        train_stage(ws, cfg)
     n_occ = calls["occ"]
     assert n_occ >= 20
     ck = load_checkpoint(ws.train_dir / "checkpoint.pt")
     assert ck["extra"]["occluders"]["means"].shape[0] == n_occ
     calls["occ"] = 0
-    s = trainer.train_workspace(ws, cfg)
+    s = train_stage(ws, cfg)
     assert s["resumed"] is True and calls["occ"] == n_occ  # the resumed run renders the same occluders
     model = load_checkpoint(ws.train_dir / "model.pt")
     assert 0 < model["extra"]["occluders"]["means"].shape[0] <= n_occ

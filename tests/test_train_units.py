@@ -97,11 +97,11 @@ def test_fused_ssim_moment_gradients_where_the_covariance_cancels_c2():
 
 @pytest.mark.parametrize("h,w,lam", [(83, 61, 0.2), (12, 200, 0.2), (1, 1, 0.5), (40, 7, 1.0)])
 def test_training_loss_is_fused_and_matches_torch(h, w, lam):
-    """The training loss (trainer.photometric_loss: the fused numba kernels on the CPU) gives the same
+    """The training loss (loss.photometric_loss: the fused numba kernels on the CPU) gives the same
     value, MSE and gradients of colour and alpha as the PyTorch composition: render composited over a
     background, (1 - l) L1 + l (1 - SSIM) with train.metrics.ssim. Values within 1e-6, gradients within
     1e-4 of the largest."""
-    from plantsplat.train import trainer
+    from plantsplat.train import loss as trainer_loss
     from plantsplat.train.metrics import ssim as ssim_torch
 
     g = torch.Generator().manual_seed(h * w)
@@ -118,7 +118,7 @@ def test_training_loss_is_fused_and_matches_torch(h, w, lam):
         return (1 - lam) * (pred - gt).abs().mean() + lam * (1 - ssim_torch(pred, gt)), ((pred - gt) ** 2).mean()
 
     results = []
-    for fn in (trainer.photometric_loss, None):
+    for fn in (trainer_loss.photometric_loss, None):
         c = color.clone().requires_grad_(True)
         al = alpha.clone().requires_grad_(True)
         loss, mse = fn(c, al, bg, gt, lam) if fn else torch_loss(c, al)
@@ -133,7 +133,7 @@ def test_training_loss_is_fused_and_matches_torch(h, w, lam):
         assert float((fused - ref).abs().max()) <= 1e-4 * float(ref.abs().max())
     # a ground truth that needs a gradient falls back to the PyTorch version (the fused one gives none)
     gt_req = gt.clone().requires_grad_(True)
-    trainer.photometric_loss(color, alpha, bg, gt_req, lam)[0].backward()
+    trainer_loss.photometric_loss(color, alpha, bg, gt_req, lam)[0].backward()
     assert gt_req.grad is not None and float(gt_req.grad.abs().sum()) > 0
 
 
@@ -142,7 +142,7 @@ def test_fused_loss_composites_a_cropped_target_like_torch(h, w):
     """Object mode passes the frame and its mask as crops (views into whole frames) with ``gt_alpha``: the fused
     loss composites the target over the background itself, and gives the value, MSE and gradients of compositing
     with PyTorch first and calling the loss on the result."""
-    from plantsplat.train import trainer
+    from plantsplat.train import loss as trainer_loss
 
     g = torch.Generator().manual_seed(7 * h + w)
     frame = torch.rand(h + 9, w + 11, 3, generator=g)
@@ -157,9 +157,9 @@ def test_fused_loss_composites_a_cropped_target_like_torch(h, w):
         c = color.clone().requires_grad_(True)
         al = alpha.clone().requires_grad_(True)
         if crop:
-            loss, mse = trainer.photometric_loss(c, al, bg, img, 0.2, ga)
+            loss, mse = trainer_loss.photometric_loss(c, al, bg, img, 0.2, ga)
         else:
-            loss, mse = trainer.photometric_loss(c, al, bg, (img * ga + (1 - ga) * bg).contiguous(), 0.2)
+            loss, mse = trainer_loss.photometric_loss(c, al, bg, (img * ga + (1 - ga) * bg).contiguous(), 0.2)
         loss.backward()
         results.append((float(loss), float(mse), c.grad, al.grad))
     (l1, m1, c1, a1), (l2, m2, c2, a2) = results
@@ -167,7 +167,7 @@ def test_fused_loss_composites_a_cropped_target_like_torch(h, w):
     assert torch.allclose(c1, c2, atol=1e-7) and torch.allclose(a1, a2, atol=1e-7)
     # the PyTorch fallback (a target that needs a gradient) composites the same way
     img_req = img.clone().requires_grad_(True)
-    loss_t, _ = trainer.photometric_loss(color, alpha, bg, img_req, 0.2, ga)
+    loss_t, _ = trainer_loss.photometric_loss(color, alpha, bg, img_req, 0.2, ga)
     assert abs(float(loss_t) - l1) < 1e-5
 
 
@@ -180,7 +180,7 @@ def test_fused_loss_skips_windows_where_render_and_target_agree(case):
     import cv2
 
     from plantsplat.raster import ssim as S
-    from plantsplat.train import trainer
+    from plantsplat.train import loss as trainer_loss
     from plantsplat.train.metrics import ssim as ssim_torch
 
     h, w = 70, 90
@@ -213,7 +213,7 @@ def test_fused_loss_skips_windows_where_render_and_target_agree(case):
     for fused in (True, False):
         c = (color if fused else color.double()).clone().requires_grad_(True)
         al = (alpha if fused else alpha.double()).clone().requires_grad_(True)
-        loss, mse = trainer.photometric_loss(c, al, bg, frame, 0.2, ga) if fused else torch_loss(c, al)
+        loss, mse = trainer_loss.photometric_loss(c, al, bg, frame, 0.2, ga) if fused else torch_loss(c, al)
         (3.0 * loss).backward()
         out.append((float(loss), float(mse), c.grad.double(), al.grad.double()))
     (lf, mf, cf, af), (lr, mr, cr, ar) = out
@@ -295,7 +295,8 @@ def _random_params(n=50, deg=2, seed=0):
 def test_splat_ply_round_trip_and_layout(tmp_path):
     from plyfile import PlyData
 
-    from plantsplat.train.export import read_splat_ply, write_splat_ply
+    from plantsplat.ply import read_splat as read_splat_ply
+    from plantsplat.ply import write_splat as write_splat_ply
 
     p = {k: v.detach().numpy() for k, v in _random_params(deg=3).items()}
     q = p["quats"] / np.linalg.norm(p["quats"], axis=1, keepdims=True)
@@ -314,10 +315,12 @@ def test_splat_ply_round_trip_and_layout(tmp_path):
 
 
 def test_read_splat_ply_rejects_other_ply(tmp_path):
-    from plantsplat.train.export import read_splat_ply, write_points_ply
+    from plantsplat.ply import read_splat as read_splat_ply
+    from plantsplat.ply import write_point_cloud
 
-    write_points_ply(tmp_path / "p.ply", np.zeros((3, 3)), np.zeros((3, 3)), np.ones(3), np.ones((3, 3)))
-    with pytest.raises(PlantsplatError, match="not a 3DGS PLY"):
+    write_point_cloud(tmp_path / "p.ply", np.zeros((3, 3)), np.zeros((3, 3), np.uint8), opacity=np.ones(3),
+                      scale=np.ones((3, 3)))
+    with pytest.raises(PlantsplatError, match="not a 3D Gaussian Splatting PLY"):
         read_splat_ply(tmp_path / "p.ply")
 
 
@@ -371,7 +374,7 @@ def test_strategy_grow_prune_keeps_optimizer_in_sync():
 def test_nonfinite_gradients_are_zeroed_per_gaussian():
     """Only the Gaussians (model or occluder) with a NaN/inf entry in any gradient lose their gradients, all of
     them; the screen-space means' gradient rows follow the render's order (model first, occluders after)."""
-    from plantsplat.train.trainer import _drop_nonfinite_grads
+    from plantsplat.train.loss import drop_nonfinite_grads
 
     def group(n, seed):
         g = torch.Generator().manual_seed(seed)
@@ -388,14 +391,14 @@ def test_nonfinite_gradients_are_zeroed_per_gaussian():
     model["means"].grad[4, 0] = float("inf")
     means2d.grad[7, 1] = float("-inf")  # occluder 1
     before = {k: v.grad.clone() for k, v in model.items()}
-    n, where = _drop_nonfinite_grads([("", model), ("occluder ", occ)], means2d)
+    n, where = drop_nonfinite_grads([("", model), ("occluder ", occ)], means2d)
     assert n == 3 and set(where) == {"sh0", "means", "occluder means2d"}
     for k, v in model.items():
         assert torch.equal(v.grad[[1, 4]], torch.zeros_like(v.grad[[1, 4]]))
         assert torch.equal(v.grad[[0, 2, 3, 5]], before[k][[0, 2, 3, 5]])
     assert torch.equal(occ["means"].grad[1], torch.zeros(3)) and bool(occ["means"].grad[0].ne(0).all())
     assert torch.equal(means2d.grad[[1, 4, 7]], torch.zeros(3, 2)) and bool(torch.isfinite(means2d.grad).all())
-    assert _drop_nonfinite_grads([("", model), ("occluder ", None)], means2d) == (0, [])
+    assert drop_nonfinite_grads([("", model), ("occluder ", None)], means2d) == (0, [])
 
 
 def test_strategy_opacity_reset():
@@ -599,10 +602,10 @@ def test_occluders_render_as_background_and_hide_what_is_behind():
     """An opaque occluder in front of a red Gaussian, composited over the background, leaves the
     background colour; the model's colours still get gradients, the occluder's opacity too."""
     from plantsplat.train.model import init_params
-    from plantsplat.train.trainer import _occluders_from, _tensors, render
+    from plantsplat.train.render import occluder_tensors, occluders_from, render
 
     params = init_params(np.array([[0.0, 0.0, 5.0]]), np.array([[1.0, 0.0, 0.0]]), 1, 0.99)
-    occ = _occluders_from(_tensors(init_params(np.array([[0.0, 0.0, 3.0]]), np.full((1, 3), 0.5), 0, 0.99)), "cpu")
+    occ = occluders_from(occluder_tensors(init_params(np.array([[0.0, 0.0, 3.0]]), np.full((1, 3), 0.5), 0, 0.99)), "cpu")
     with torch.no_grad():
         params["scales"].fill_(np.log(0.5))
         occ["scales"].fill_(np.log(0.5))

@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from plantsplat import traitdefs
 from plantsplat.traits import accuracy_table, measure_traits
 from plantsplat.traits.cube_fit import cube_surface_points, decide_up, fit_cube_planes
-from plantsplat.traits.measure import TraitSettings, fruit_mask
+from plantsplat.traits.measure import TraitsConfig, fruit_mask
 from plantsplat.traits.stats import format_table, mae, mape, r2, rmse, scatter_plots
 
 CUBE_FACES = ("+x", "-x", "+y", "-y", "top")  # the bottom face stands on the ground and is never seen
@@ -182,7 +182,7 @@ def test_gaussian_cube_measured_by_its_envelope_not_its_sunken_planes():
     assert not any("ArUco" in r for r in res.reasons), res.reasons
     assert abs(res.scale["cube_bottom_z_cm"]) < 0.2  # 2 % of the edge
     planes = measure_traits(pts, cols, calibrated=True, opacity=np.ones(len(pts)),
-                            settings=TraitSettings(cube_edge="planes"))
+                            settings=TraitsConfig(cube_edge="planes"))
     assert planes.scale["cube_edge_method"] == "planes" and any("ArUco" in r for r in planes.reasons)
     # without opacities or extent samples (any point cloud) 'auto' fits planes
     assert measure_traits(pts, cols, calibrated=True).scale["cube_edge_method"] == "planes"
@@ -197,7 +197,7 @@ def test_scale_disagreement_is_reported_and_flagged():
 
 
 def test_fruit_colour_model():
-    s = TraitSettings()
+    s = TraitsConfig()
     cols = np.array([[190, 15, 20], [160, 8, 30], [129, 59, 26], [40, 95, 25], [240, 240, 230], [30, 3, 3]], np.uint8)
     assert fruit_mask(cols, s).tolist() == [True, True, False, False, False, False]
 
@@ -258,7 +258,7 @@ def test_statistics_match_the_paper_definitions():
     assert r2([1, 2, 3], [3, 2, 1]) == pytest.approx(-3.0)  # worse than the mean: negative
     with pytest.raises(ValueError):
         mape([0.0, 1.0], [0.1, 1.0])
-    assert "| Height (cm) |" in format_table({"height_cm": t})
+    assert "| height from the soil (cm) |" in format_table({"height_cm": t})
 
 
 def test_scatter_plot_png(tmp_path):
@@ -319,14 +319,14 @@ def test_traits_command_bad_input_one_line_error(tmp_path, capsys):
     assert main(["traits", str(ws)]) == 1  # no export yet
     err = capsys.readouterr().err
     assert "splat.ply" in err and "plantsplat export" in err and "Traceback" not in err
-    # an unscaled cloud without a cube: failed traits.json, non-zero exit, no numbers
+    # an unscaled cloud without a cube: failed traits.json, the failed result's exit code, no numbers
     pts, cols, plant = make_plant_scene(seed=9, floaters=False)
     _write_points_ply(ws / "export" / "points.ply", pts[plant] * 0.2, cols[plant], np.ones(int(plant.sum())))
     (ws / "poses.json").write_text(json.dumps({"scale_source": "none"}))
-    assert main(["traits", str(ws)]) == 1
+    assert main(["traits", str(ws)]) == 4
     out = json.loads((ws / "traits.json").read_text())
     assert out["quality"] == "failed" and out["height_cm"] is None
-    assert "no cube" in capsys.readouterr().err
+    assert "no cube" in " ".join(capsys.readouterr().err.split())  # the log wraps long lines
     (ws / "export" / "points.ply").write_bytes(b"ply\ngarbage")
     assert main(["traits", str(ws)]) == 1
     assert "not a readable PLY" in capsys.readouterr().err
@@ -337,7 +337,7 @@ def test_extent_sampling_from_splat_ply(tmp_path):
     largest axis is along z with sigma 0.25 cm, so the height grows by 2 * k_sigma * 0.25 cm. At 0 the
     centres alone count, and the PLY's opacity is still read as a logit (the plant's -1 is 0.27, kept)."""
     from plantsplat.cli import main
-    from plantsplat.train.export import write_splat_ply
+    from plantsplat.ply import write_splat as write_splat_ply
 
     pts, cols, plant = make_plant_scene(seed=10, floaters=False)
     keep = np.arange(len(pts)) % 3 == 0  # 7 points per Gaussian: keep the cloud small
@@ -390,7 +390,7 @@ def test_traits_command_unscaled_workspace_uses_cube_and_cameras(tmp_path):
 
 def test_large_clouds_clustered_on_a_subset_give_the_same_plant():
     pts, cols, plant = make_plant_scene(seed=1)
-    res = measure_traits(pts, cols, calibrated=True, settings=TraitSettings(max_cluster_points=6000))
+    res = measure_traits(pts, cols, calibrated=True, settings=TraitsConfig(max_cluster_points=6000))
     assert res.quality == "ok", res.reasons
     assert len(res.plant_points) == int(plant.sum())
     assert res.traits["height_cm"] == pytest.approx(traitdefs.plant_height(pts[plant]), rel=1e-9)
@@ -429,7 +429,7 @@ def test_hanging_fruit_without_peduncles_join_the_plant():
     assert res.traits["height_cm"] > body[:, 2].max() - body[:, 2].min() + 2.0  # the hanging fruit counts for height
     assert any("fruit-coloured" in n for n in res.notes)
     # switched off: without their peduncles all fruit stay out (they hang more than 4 cm from the leaves)
-    off = measure_traits(P, C, calibrated=True, settings=TraitSettings(fruit_join_cm=0))
+    off = measure_traits(P, C, calibrated=True, settings=TraitsConfig(fruit_join_cm=0))
     assert off.traits["fruit_count"] == 0
 
 
@@ -467,6 +467,65 @@ def test_hanging_unripe_fruit_join_the_plant_but_pale_objects_do_not():
                                                           f"({len(box)} points): check the plant is not split"]
     alone = measure_traits(np.concatenate([pts, unripe]), np.concatenate([cols, cream(len(unripe))]), calibrated=True)
     assert alone.quality == "ok", alone.reasons  # every far cluster joined: nothing to warn about
-    off = measure_traits(P, C, calibrated=True, settings=TraitSettings(fruit_join_unripe_cm=0))
+    off = measure_traits(P, C, calibrated=True, settings=TraitsConfig(fruit_join_unripe_cm=0))
     got_off = {tuple(p) for p in off.plant_points.round(6)}
     assert not any(tuple(p) in got_off for p in unripe.round(6))
+
+
+def test_height_is_measured_from_the_soil():
+    """A ruler on the soil: fruit hanging over the rim do not change the height; the paper's extent is kept."""
+    pts, cols, plant = make_plant_scene(seed=3, floaters=False)
+    soil = 11.0  # the crown sits at 12 cm, fruit hang down to 8 cm
+    res = measure_traits(pts, cols, calibrated=True, soil_z=soil)
+    top = pts[plant, 2].max()
+    assert res.traits["height_cm"] == pytest.approx(top - soil, abs=1e-9)
+    assert res.traits["height_extent_cm"] == pytest.approx(top - pts[plant, 2].min(), abs=1e-9)
+    assert res.traits["height_extent_cm"] > res.traits["height_cm"]
+    assert res.to_json()["soil_z_cm"] == soil
+    alone = measure_traits(pts, cols, calibrated=True)  # no soil known: the extent
+    assert alone.traits["height_cm"] == pytest.approx(alone.traits["height_extent_cm"])
+
+
+def _measured_workspace(tmp_path, pts, cols, segment_confidence: list[float] | None = None, pot_soil: float | None = None):
+    ws = tmp_path / "plant"
+    _write_points_ply(ws / "export" / "points.ply", pts, cols, np.ones(len(pts)))
+    (ws / "poses.json").write_text(json.dumps({"scale_source": "aruco"}))
+    if segment_confidence is not None:
+        frames = [{"name": f"frame_{i:05d}.png", "confidence": c} for i, c in enumerate(segment_confidence)]
+        obj = {"pot": {"soil_z_cm": pot_soil}} if pot_soil is not None else {}
+        (ws / "segment.json").write_text(json.dumps({"frames": frames, "capture": {"object": obj}}))
+    return ws
+
+
+def test_a_result_failing_its_checks_is_written_marked_and_exits_4(tmp_path, capsys):
+    from plantsplat.cli import main
+
+    pts, cols, _ = make_plant_scene(seed=4, floaters=False)
+    ws = _measured_workspace(tmp_path, pts, cols, [0.9] * 20, pot_soil=11.0)
+    assert main(["traits", str(ws), "--no-figure"]) == 0
+    good = json.loads((ws / "traits.json").read_text())
+    assert good["quality"] == "ok" and good["soil_source"].startswith("the pot the segment stage found")
+    assert {c["name"] for c in good["checks"]} >= {"masks_confidence_mean", "masks_unsure_share", "plant_points"}
+    # masks the segmenter was unsure of in most frames: the numbers come out, but marked failed
+    ws = _measured_workspace(tmp_path / "unsure", pts, cols, [0.9] * 5 + [0.3] * 15)
+    assert main(["traits", str(ws), "--no-figure"]) == 4
+    out = json.loads((ws / "traits.json").read_text())
+    assert out["quality"] == "failed" and out["height_cm"] is not None
+    assert any(r.startswith("check masks_unsure_share") for r in out["quality_reasons"])
+    assert "failed" in (ws / "traits.csv").read_text()
+    assert "FAILED" in capsys.readouterr().err
+
+
+def test_a_tiny_cloud_fails_its_checks(tmp_path):
+    """142 Gaussians of a wrong camera model: a plant 1.2 cm tall."""
+    rng = np.random.default_rng(5)
+    cube = cube_surface_points(10.0, 6000, rng, faces=CUBE_FACES)
+    plant = rng.normal([24.0, 3.0, 12.0], [1.0, 0.8, 0.4], (142, 3))
+    pts = np.concatenate([cube, plant])
+    cols = np.concatenate([np.full((len(cube), 3), 230, np.uint8), np.full((142, 3), (40, 95, 25), np.uint8)])
+    from plantsplat.traits.measure import traits_workspace
+
+    out = traits_workspace(_measured_workspace(tmp_path, pts, cols), TraitsConfig(min_points=5), figure=False)
+    assert out["quality"] == "failed"
+    failed = {c["name"] for c in out["checks"] if not c["passed"]}
+    assert {"plant_points", "plant_height_cm"} <= failed

@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from plantsplat.traits import measure_traits, read_points_ply
+from plantsplat.ply import read_point_cloud as read_points_ply
+from plantsplat.traits import measure_traits
 
 GEOMETRIC = ("height_cm", "width1_cm", "width2_cm", "canopy_volume_cm3", "canopy_area_cm2")
 
@@ -21,15 +21,18 @@ def capture(synth_capture):
     return cap, gt
 
 
-def _check(traits, gt, tol=0.01):
+def _check(traits, gt, tol=0.01, soil_known=True):
+    """Every geometric trait within ``tol``; without the soil the height is the plant's extent."""
     for k in GEOMETRIC:
-        assert traits[k] == pytest.approx(gt[k], rel=tol), k
+        want = gt[k] if soil_known or k != "height_cm" else gt["height_extent_cm"]
+        assert traits[k] == pytest.approx(want, rel=tol), k
+    assert traits["height_extent_cm"] == pytest.approx(gt["height_extent_cm"], rel=tol)
 
 
 def test_scene_ground_truth_cloud_gives_ground_truth_traits(capture):
     cap, gt = capture
     scene = read_points_ply(cap / "scene_gt.ply")
-    res = measure_traits(scene["xyz"], scene["rgb"], calibrated=True)
+    res = measure_traits(scene["xyz"], scene["rgb"], calibrated=True, soil_z=gt["plant"]["soil_z_cm"])
     assert res.quality == "ok", res.reasons
     _check(res.traits, gt)
     # the cube was found and measured by its planes
@@ -50,7 +53,7 @@ def test_unscaled_scene_is_calibrated_by_the_cube(capture):
     assert res.quality in ("ok", "warning"), res.reasons
     assert res.scale["source"] == "cube_planes"
     assert res.scale["scale"] * 0.37 == pytest.approx(1.0, rel=0.01)
-    _check(res.traits, gt)
+    _check(res.traits, gt, soil_known=False)  # an uncalibrated cloud's soil is not known
     # the calibrated frame: ground at z = 0 under the cube, so the plant is above it
     assert res.plant_points[:, 2].min() > -0.1
 
@@ -58,6 +61,6 @@ def test_unscaled_scene_is_calibrated_by_the_cube(capture):
 def test_plant_cloud_without_cube_is_measured_and_flagged(capture):
     cap, gt = capture
     plant = read_points_ply(cap / "plant_gt.ply")
-    res = measure_traits(plant["xyz"], plant["rgb"], calibrated=True)
+    res = measure_traits(plant["xyz"], plant["rgb"], calibrated=True, soil_z=gt["plant"]["soil_z_cm"])
     assert res.quality == "warning" and any("no cube" in r for r in res.reasons)
     _check(res.traits, gt)

@@ -9,8 +9,8 @@ Outputs in ``OUT/``: ``traits.csv`` (one row per plant, with status and error), 
 plant status, reason, time), and with ground truth ``accuracy.json`` / ``accuracy.csv`` (the paper's
 R2, RMSE, MAPE, MAE, Acc per trait) and scatter plots.
 
-Example:
-    >>> summary = run_batch("plants.csv", "out", BatchOptions(workers=2))  # doctest: +SKIP
+Usage:
+    summary = run_batch("plants.csv", "out", BatchConfig(workers=2))
 """
 
 from __future__ import annotations
@@ -23,11 +23,14 @@ import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
+
+import tyro
 
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import write_json_atomic, write_text_atomic
 from plantsplat.log import get_logger
-from plantsplat.pipeline import RunOptions
+from plantsplat.pipeline import RunConfig
 from plantsplat.traitdefs import TRAIT_KEYS
 
 log = get_logger(__name__)
@@ -87,14 +90,15 @@ def read_manifest(path: str | Path) -> list[ManifestRow]:
 
 
 @dataclass
-class BatchOptions:
+class BatchConfig:
     workers: int = 1
     """Plants processed at once on this machine (worker processes); CPU threads are shared out among them."""
     ray_address: str | None = None
     """Run plants as Ray tasks on this cluster (`auto` for a running cluster, `local` to start one here)."""
     ground_truth: Path | None = None
     """CSV of measured traits (plant_id + trait columns) for the accuracy table."""
-    run: RunOptions = field(default_factory=RunOptions)
+    run: Annotated[RunConfig, tyro.conf.arg(name="")] = field(default_factory=RunConfig)
+    """Every stage's options, as for `plantsplat run`."""
 
 
 def _threads_for(workers: int) -> int:
@@ -113,25 +117,27 @@ def _limit_threads(n: int) -> None:
         pass
 
 
-def run_one_plant(plant_id: str, source: str, ws: str, run_opts: dict, threads: int) -> dict:
+def run_one_plant(plant_id: str, source: str, ws: str, run_cfg: RunConfig, threads: int) -> dict:
     """Run the whole pipeline for one plant; never raises (the result carries the failure)."""
     _limit_threads(threads)
     from plantsplat.log import setup_logging
     from plantsplat.pipeline import run_pipeline
 
     setup_logging(quiet=True)
-    opts = RunOptions(**run_opts)
-    opts.plant_id = plant_id
+    opts = dataclasses.replace(run_cfg, plant_id=plant_id)
     if opts.ground_truth is not None:
         from plantsplat.groundtruth import read_ground_truth_csv
 
         rows, _ = read_ground_truth_csv(opts.ground_truth)
         if plant_id not in rows:
-            opts.ground_truth = None  # no usable truth for this plant: nothing to evaluate
+            opts = dataclasses.replace(opts, ground_truth=None)  # no usable truth for this plant: nothing to evaluate
     t0 = time.perf_counter()
     try:
         summary = run_pipeline(Path(source), Path(ws), opts)
-        return {"plant_id": plant_id, "status": "ok", "traits": summary.get("traits", {}),
+        traits = summary.get("traits", {})
+        failed = traits.get("quality") == "failed"  # measured, but a check failed: the numbers must not be used
+        return {"plant_id": plant_id, "status": "failed" if failed else "ok", "traits": traits,
+                "error": "; ".join(traits.get("quality_reasons", [])[:3]) if failed else "",
                 "seconds": round(time.perf_counter() - t0, 2), "workspace": ws}
     except PlantsplatError as exc:
         return {"plant_id": plant_id, "status": "failed", "error": str(exc),
@@ -142,8 +148,8 @@ def run_one_plant(plant_id: str, source: str, ws: str, run_opts: dict, threads: 
 
 
 def _run_local(jobs: list[tuple], workers: int) -> list[dict]:
-    from concurrent.futures import ProcessPoolExecutor, as_completed
     import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
 
     from plantsplat.log import progress
 
@@ -162,7 +168,7 @@ def _run_local(jobs: list[tuple], workers: int) -> list[dict]:
     return results
 
 
-def _run_ray(jobs: list[tuple], address: str, run_opts: RunOptions, workers: int) -> list[dict]:
+def _run_ray(jobs: list[tuple], address: str, run_cfg: RunConfig, workers: int) -> list[dict]:
     try:
         import ray
     except ImportError as exc:
@@ -180,7 +186,7 @@ def _run_ray(jobs: list[tuple], address: str, run_opts: RunOptions, workers: int
         raise PlantsplatError(f"Ray cluster {address!r}: cannot connect ({exc})") from exc
     cpus = int(ray.cluster_resources().get("CPU", 1))
     per_task = max(1, cpus // max(1, workers)) if workers > 1 else max(1, cpus)
-    gpus = 1 if run_opts.backend == "gsplat" else 0
+    gpus = 1 if run_cfg.train.backend == "gsplat" else 0
     remote = ray.remote(num_cpus=per_task, num_gpus=gpus, max_retries=0)(run_one_plant)
     refs = [remote.remote(*job, per_task) for job in jobs]
     results = []
@@ -199,7 +205,7 @@ def _run_ray(jobs: list[tuple], address: str, run_opts: RunOptions, workers: int
     return results
 
 
-def run_batch(manifest: str | Path, out: str | Path, opts: BatchOptions) -> dict:
+def run_batch(manifest: str | Path, out: str | Path, opts: BatchConfig) -> dict:
     """Run every plant of ``manifest`` into ``out``; returns the batch summary (also ``out/batch.json``)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -208,10 +214,9 @@ def run_batch(manifest: str | Path, out: str | Path, opts: BatchOptions) -> dict
         from plantsplat.groundtruth import read_ground_truth_csv
 
         read_ground_truth_csv(opts.ground_truth)  # an unreadable file stops the batch before any work
-    run_opts = dataclasses.asdict(opts.run)
-    run_opts["ground_truth"] = opts.ground_truth
+    run_cfg = dataclasses.replace(opts.run, ground_truth=opts.ground_truth)
     jobs = [
-        (r.plant_id, str(r.input), str(out / "plants" / r.plant_id), run_opts)
+        (r.plant_id, str(r.input), str(out / "plants" / r.plant_id), run_cfg)
         for r in rows
         if r.problem is None
     ]

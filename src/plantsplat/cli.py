@@ -56,7 +56,6 @@ def main(argv: list[str] | None = None) -> int:
             args=argv,
             prog="plantsplat",
             description=DESCRIPTION,
-            config=(tyro.conf.OmitArgPrefixes,),
         )
     except SystemExit as exc:  # --help, or tyro's own usage error (exit 2)
         return int(exc.code or 0)
@@ -72,6 +71,13 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         console.print("interrupted: finished outputs are kept; re-run the same command to resume")
         return 130
+    except OSError as exc:  # the disk or the file system, said in words
+        from plantsplat.io import os_error_message
+
+        if verbose:
+            console.print_exception()
+        console.print(f"[bold red]error:[/] {os_error_message(exc)}", markup=True, highlight=False, soft_wrap=True)
+        return 1
     except Exception as exc:  # an unexpected failure: one line, traceback only with --verbose
         if verbose:
             console.print_exception()

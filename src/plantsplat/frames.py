@@ -11,26 +11,23 @@ matrix), downscaled so the longer side is at most ``max_size`` and written as
 Decoding is done with PyAV (FFmpeg's decoders, frame threads on); nothing is decoded twice and only
 the best candidate of the current stretch is kept in memory as a decoded frame.
 
-Example:
-    >>> from plantsplat.frames import extract_frames
-    >>> from plantsplat.workspace import Workspace
-    >>> info = extract_frames("plant01.mp4", Workspace("ws/plant01"), num=120, max_size=960)
-    >>> len(info["frames"]), info["working_size"]
-    (120, [540, 960])
+Usage:
+    info = extract_frames("plant01.mp4", Workspace("ws/plant01"), FramesConfig(num=120))
+    len(info["frames"]), info["working_size"]
 """
 
 from __future__ import annotations
 
-import hashlib
 import os
 import re
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from plantsplat.errors import PlantsplatError, UsageError
-from plantsplat.io import read_json, write_image_atomic, write_json_atomic
+from plantsplat.io import staged_dir, write_image_atomic, write_json_atomic
 from plantsplat.log import get_logger, make_progress
 from plantsplat.workspace import IMAGE_PATTERN, Workspace
 
@@ -39,6 +36,22 @@ log = get_logger(__name__)
 VIDEO_SUFFIXES = {".mp4", ".mov", ".m4v", ".mkv", ".avi", ".webm", ".mts", ".3gp"}
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
 FRAMES_VERSION = 1
+
+
+@dataclass
+class FramesConfig:
+    """Options of the frames stage."""
+
+    num: int = 120
+    """Number of frames to aim for (the paper used 100-150): one per equal stretch of the capture."""
+    max_size: int = 960
+    """Longest side of the written images in pixels (1/4 of 4K = 960); never upscaled."""
+    min_frames: int = 8
+    """Fewer usable frames than this is an error."""
+    blur_ratio: float = 0.35
+    """Drop a chosen frame whose sharpness is below this fraction of the median chosen frame."""
+    dup_threshold: float = 1.0
+    """Drop a frame whose 64-px thumbnail differs from the previous kept one by less than this (0-255)."""
 
 
 # --------------------------------------------------------------------------------------------------
@@ -162,12 +175,14 @@ def _filter(cands: list[dict[str, Any]], blur_ratio: float, dup_threshold: float
         gray = cv2.cvtColor(c["rgb"], cv2.COLOR_RGB2GRAY)
         thumb = _thumb(gray)
         if ref > 0 and c["sharpness"] < blur_ratio * ref:
-            dropped.append({"source_index": c["source_index"], "reason": f"blurred (sharpness {c['sharpness']:.1f} < {blur_ratio} x median {ref:.1f})"})
+            dropped.append({"source_index": c["source_index"],
+                            "reason": f"blurred (sharpness {c['sharpness']:.1f} < {blur_ratio} x median {ref:.1f})"})
             continue
         if prev_thumb is not None and prev_thumb.shape == thumb.shape:
             diff = float(np.mean(np.abs(thumb - prev_thumb)))
             if diff < dup_threshold:
-                dropped.append({"source_index": c["source_index"], "reason": f"near-duplicate of the previous frame (mean difference {diff:.2f})"})
+                dropped.append({"source_index": c["source_index"],
+                                "reason": f"near-duplicate of the previous frame (mean difference {diff:.2f})"})
                 continue
         prev_thumb = thumb
         kept.append(c)
@@ -270,9 +285,12 @@ def _select_from_video(path: Path, num: int, max_size: int) -> tuple[list, dict]
     if decoded == 0 or sel is None:
         raise PlantsplatError(f"{path}: no frame could be decoded; re-export the video as H.264 mp4")
     if decoded < total:
-        # header over-counted (or the file is truncated): stretches past the end simply stay empty
-        log.info("%s: decoded %d frames (header said %d)", path, decoded, total)
+        # the header over-counted, or the file is truncated: stretches past the end simply stay empty
+        (log.warning if decoded < 0.9 * total else log.info)(
+            "%s: decoded %d of the %d frames its header announces%s", path, decoded, total,
+            "; the file looks truncated (re-export or copy it again if the capture was longer)" if decoded < 0.9 * total else "")
         info["total_source_frames"] = decoded
+        info["header_frames"] = total
     cands = sel.close(finish)
     for c in cands:
         c.pop("payload_info", None)
@@ -291,7 +309,8 @@ def _select_from_folder(folder: Path, num: int, max_size: int) -> tuple[list, di
 
     files = _list_images(folder)
     if not files:
-        raise PlantsplatError(f"{folder}: no images found (looked for {', '.join(sorted(IMAGE_SUFFIXES))}); pass a video or a folder of photos")
+        looked = ", ".join(sorted(IMAGE_SUFFIXES))
+        raise PlantsplatError(f"{folder}: no images found (looked for {looked}); pass a video or a folder of photos")
     total = len(files)
     n_take = min(num, total)
     if total < num:
@@ -326,7 +345,8 @@ def _select_from_folder(folder: Path, num: int, max_size: int) -> tuple[list, di
                 rgb = cv2.resize(rgb, (sw, sh), interpolation=cv2.INTER_AREA)
             sel.push(i, cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), rgb, finish)
     if unreadable:
-        log.warning("%s: skipped %d unreadable image(s): %s", folder, len(unreadable), ", ".join(unreadable[:10]) + (" ..." if len(unreadable) > 10 else ""))
+        log.warning("%s: skipped %d unreadable image(s): %s", folder, len(unreadable),
+                    ", ".join(unreadable[:10]) + (" ..." if len(unreadable) > 10 else ""))
     if sel is None:
         raise PlantsplatError(f"{folder}: none of the {total} images could be read; check the files")
     cands = sel.close(finish)
@@ -342,52 +362,35 @@ def _select_from_folder(folder: Path, num: int, max_size: int) -> tuple[list, di
 # --------------------------------------------------------------------------------------------------
 # public API
 # --------------------------------------------------------------------------------------------------
-def frames_fingerprint(ws: Workspace) -> str | None:
-    """A short hash of ``frames.json`` (used by later stages to notice re-extracted frames)."""
-    if not ws.frames_json.is_file():
-        return None
-    return hashlib.sha1(ws.frames_json.read_bytes()).hexdigest()[:16]
+def check_not_inside(src: Path, ws: Workspace) -> None:
+    """Refuse an input that is, holds or lies inside ``images/``, the folder the stage replaces."""
+    out_dir, src = ws.images_dir.resolve(), Path(src).resolve()
+    if src == out_dir or out_dir in src.parents or src in out_dir.parents:
+        raise UsageError(f"{src}: is (or holds) {ws.images_dir}, the folder this stage writes; copy your images to "
+                         "another folder and pass that one (your images are left as they are)")
 
 
-def extract_frames(
-    input: str | os.PathLike,
-    ws: Workspace | str | os.PathLike,
-    num: int = 120,
-    max_size: int = 960,
-    force: bool = False,
-    min_frames: int = 8,
-    blur_ratio: float = 0.35,
-    dup_threshold: float = 1.0,
-) -> dict[str, Any]:
-    """Choose ``num`` sharp frames spread over a video or image folder and write them to ``ws``.
+def extract_frames(input: str | os.PathLike, ws: Workspace | str | os.PathLike, cfg: FramesConfig | None = None
+                   ) -> dict[str, Any]:
+    """Choose ``cfg.num`` sharp frames spread over a video or image folder and write them to ``ws``.
 
-    Args:
-        input: a video file (mp4/mov/..., H.264 or HEVC; rotation metadata honoured) or a folder of images.
-        ws: the workspace (folder) to write ``images/`` and ``frames.json`` into.
-        num: how many frames to aim for (one per equal stretch of the capture).
-        max_size: longest side of the written images in pixels (never upscaled).
-        force: re-extract even when ``frames.json`` says this input was already extracted with these
-            settings; stale ``images/frame_*.png`` beyond the new count are removed.
-        min_frames: fewer usable frames than this is an error.
-        blur_ratio: a chosen frame whose sharpness is below ``blur_ratio`` x the median of the chosen
-            frames is dropped as blurred.
-        dup_threshold: a chosen frame whose 64-px gray thumbnail differs from the previous kept one by
-            less than this mean absolute difference (0-255 scale) is dropped as a near-duplicate.
+    ``input``: a video file (mp4/mov/..., H.264 or HEVC; rotation metadata honoured) or a folder of
+    images (never inside the workspace's ``images/``, which this stage replaces whole when it is done).
+    See :class:`FramesConfig` for the options. Returns the content of ``frames.json``.
 
-    Returns:
-        The content of ``frames.json``.
-
-    Example:
-        >>> info = extract_frames("plant.mov", "ws/plant", num=100)
-        >>> info["frames"][0]["name"], info["kind"]
-        ('frame_00000.png', 'video')
+    Usage:
+        info = extract_frames("plant.mov", "ws/plant", FramesConfig(num=100))
+        info["frames"][0]["name"], info["kind"]
     """
+    cfg = cfg or FramesConfig()
+    num, max_size, min_frames = cfg.num, cfg.max_size, cfg.min_frames
+    blur_ratio, dup_threshold = cfg.blur_ratio, cfg.dup_threshold
     ws = ws if isinstance(ws, Workspace) else Workspace(ws)
     src = Path(input)
     if num < 1:
-        raise UsageError(f"--num must be at least 1 (got {num})")
+        raise UsageError(f"the frame count (--num; --frames.num for `run`) must be at least 1, got {num}")
     if max_size < 16:
-        raise UsageError(f"--max-size must be at least 16 pixels (got {max_size})")
+        raise UsageError(f"the image size (--max-size; --frames.max-size for `run`) must be at least 16 px, got {max_size}")
     if not src.exists():
         raise PlantsplatError(f"{src}: no such file or folder; pass a video file or a folder of images")
     kind = "folder" if src.is_dir() else "video"
@@ -396,28 +399,7 @@ def extract_frames(
     settings = {"num": num, "max_size": max_size, "min_frames": min_frames, "blur_ratio": blur_ratio,
                 "dup_threshold": dup_threshold, "version": FRAMES_VERSION}
     fingerprint = _source_fingerprint(src) if kind == "video" else {"path": str(src.resolve())}
-
-    # resume / protection of existing work
-    existing_names = ws.image_names()
-    if ws.frames_json.is_file() and not force:
-        try:
-            old = read_json(ws.frames_json)
-        except PlantsplatError:
-            old = None
-        if (
-            old is not None
-            and old.get("source") == fingerprint
-            and old.get("settings") == settings
-            and all((ws.images_dir / f["name"]).is_file() for f in old.get("frames", []))
-        ):
-            log.info("%s: frames already extracted from %s (%d images); pass --force to redo", ws.root, src, len(old["frames"]))
-            return old
-    if existing_names and not force:
-        raise PlantsplatError(
-            f"{ws.images_dir}: already holds {len(existing_names)} images from another extraction; "
-            "pass --force to replace them or choose another --out",
-            exit_code=2,
-        )
+    check_not_inside(src, ws)
 
     log.info("frames: choosing up to %d frames from %s", num, src)
     if kind == "video":
@@ -434,13 +416,12 @@ def extract_frames(
             "record a longer, steadier video or add images"
         )
 
-    ws.images_dir.mkdir(parents=True, exist_ok=True)
     records = []
-    with make_progress() as bar:
+    with staged_dir(ws.images_dir) as tmp, make_progress() as bar:  # images/ is replaced whole, when finished
         task = bar.add_task("writing images", total=len(kept), info="")
         for i, c in enumerate(kept):
             name = IMAGE_PATTERN.format(i)
-            write_image_atomic(ws.images_dir / name, c["rgb"])
+            write_image_atomic(tmp / name, c["rgb"])
             rec = {"name": name, "source_index": int(c["source_index"]), "sharpness": round(float(c["sharpness"]), 3)}
             if "source_name" in c:
                 rec["source_name"] = c["source_name"]
@@ -448,12 +429,6 @@ def extract_frames(
                 rec["time_s"] = round(c["source_index"] / info["fps"], 4)
             records.append(rec)
             bar.advance(task)
-    # remove stale frames of an earlier (forced-over) extraction so images/ matches frames.json
-    new_names = {r["name"] for r in records}
-    for name in existing_names:
-        if name not in new_names and re.fullmatch(r"frame_\d{5}\.png", name):
-            (ws.images_dir / name).unlink(missing_ok=True)
-
     out = {
         "source": fingerprint,
         "kind": kind,
@@ -461,6 +436,7 @@ def extract_frames(
         "source_size": info["source_size"],
         "working_size": info["working_size"],
         "total_source_frames": info["total_source_frames"],
+        "header_frames": info.get("header_frames"),
         "fps": info.get("fps"),
         "settings": settings,
         "median_sharpness_all": round(info["median_sharpness_all"], 3),

@@ -7,10 +7,9 @@ Two formats are accepted:
   (``height_cm, width1_cm, width2_cm, canopy_volume_cm3, canopy_area_cm2, fruit_count``); empty cells
   mean "not measured".
 
-Example:
-    >>> rows, problems = read_ground_truth_csv("measured.csv")  # doctest: +SKIP
-    >>> rows["plant_01"]["height_cm"]                           # doctest: +SKIP
-    21.5
+Usage:
+    rows, problems = read_ground_truth_csv("measured.csv")
+    rows["plant_01"]["height_cm"]
 """
 
 from __future__ import annotations
@@ -79,10 +78,13 @@ def read_ground_truth_csv(path: str | Path) -> tuple[dict[str, dict[str, float]]
 
 
 def load_ground_truth(path: str | Path, plant_id: str | None = None) -> dict[str, float]:
-    """Ground-truth traits of one plant from a synth ``ground_truth.json`` or a CSV row."""
+    """Ground-truth traits of one plant from a synth ``ground_truth.json``, a rendered capture's (``plant`` with
+    ``height_above_soil_cm``, as in ``../shared/datasets/foreign_renders``) or a CSV row."""
     path = Path(path)
     if path.suffix.lower() == ".json":
         data = read_json(path)
+        if isinstance(data.get("plant"), dict) and "height_above_soil_cm" in data["plant"]:
+            data = _rendered_plant_truth(data["plant"])
         values = {k: float(data[k]) for k in TRAIT_KEYS if k in data and data[k] is not None}
         if not values:
             raise PlantsplatError(f"{path}: no trait values ({', '.join(TRAIT_KEYS)}) in this JSON")
@@ -96,6 +98,16 @@ def load_ground_truth(path: str | Path, plant_id: str | None = None) -> dict[str
         why = next((p for p in problems if repr(plant_id) in p), None)
         raise PlantsplatError(f"{path}: no usable row for plant {plant_id!r}" + (f" ({why})" if why else ""))
     return rows[plant_id]
+
+
+def _rendered_plant_truth(plant: dict) -> dict:
+    """The traits of the foreign renders' ``ground_truth.json`` (``plant``) under plantsplat's definitions: height
+    above the soil; the extent, widths, volume and area over every plant vertex (fruit below the rim too)."""
+    every = plant.get("including_parts_below_soil") or plant
+    return {"height_cm": plant["height_above_soil_cm"], "height_extent_cm": every.get("height_cm"),
+            "width1_cm": every.get("width1_cm"), "width2_cm": every.get("width2_cm"),
+            "canopy_volume_cm3": every.get("canopy_volume_cm3"), "canopy_area_cm2": every.get("projected_canopy_area_cm2"),
+            "fruit_count": plant.get("n_fruits")}
 
 
 def compare_traits(estimate: dict, truth: dict[str, float]) -> dict[str, dict]:

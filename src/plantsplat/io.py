@@ -5,15 +5,19 @@ same folder and renamed into place, so an interrupted run never leaves a half-wr
 re-run can trust whatever exists.
 
 Example:
+    >>> import tempfile
+    >>> from pathlib import Path
     >>> from plantsplat.io import write_json_atomic, read_json
-    >>> write_json_atomic("ws/frames.json", {"frames": []})
-    >>> read_json("ws/frames.json")["frames"]
+    >>> with tempfile.TemporaryDirectory() as tmp:
+    ...     write_json_atomic(Path(tmp) / "ws" / "frames.json", {"frames": []})
+    ...     read_json(Path(tmp) / "ws" / "frames.json")["frames"]
     []
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import tempfile
@@ -29,6 +33,28 @@ _UMASK = os.umask(0)
 os.umask(_UMASK)
 
 
+def os_error_message(exc: OSError, path: str | os.PathLike | None = None) -> str:
+    """One line, in words, for a failed read or write of ``path``: what happened and what to do.
+
+    Example:
+        >>> import errno
+        >>> os_error_message(OSError(errno.ENOSPC, "No space left on device"), "ws/train/model.pt")
+        'ws/train/model.pt: the disk is full; free some space and re-run (finished outputs are kept)'
+    """
+    where = path if path is not None else (exc.filename or "a file")
+    if exc.errno == errno.ENOSPC or exc.errno == errno.EDQUOT:
+        return f"{where}: the disk is full; free some space and re-run (finished outputs are kept)"
+    if exc.errno in (errno.EACCES, errno.EPERM):
+        return f"{where}: permission denied; make the folder writable or choose another output folder"
+    if exc.errno == errno.EROFS:
+        return f"{where}: the file system is read-only; choose an output folder on a writable disk"
+    if exc.errno == errno.ENOTDIR:
+        return f"{where}: a part of this path is a file, not a folder; choose another output folder"
+    if exc.errno == errno.EEXIST:
+        return f"{where}: already exists and is in the way; move it aside or choose another output folder"
+    return f"{where}: {exc.strerror or exc}; check the path, the disk and the permissions"
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; rename it onto ``path`` when the block succeeds.
@@ -37,9 +63,12 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     (OpenCV, PyAV, Open3D) still pick the right format.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     suffix = path.suffix if suffix is None else suffix
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp" + suffix, dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp" + suffix, dir=path.parent)
+    except OSError as exc:
+        raise PlantsplatError(os_error_message(exc, path)) from exc
     os.close(fd)
     tmp_path = Path(tmp)
     os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; outputs get the usual permissions
@@ -48,12 +77,52 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
         os.replace(tmp_path, path)
     except OSError as exc:
         tmp_path.unlink(missing_ok=True)
-        if exc.errno == 28:  # ENOSPC
-            raise PlantsplatError(f"{path}: the disk is full; free some space and re-run (finished outputs are kept)") from exc
-        raise
+        raise PlantsplatError(os_error_message(exc, path)) from exc
     except BaseException:
         tmp_path.unlink(missing_ok=True)
         raise
+
+
+@contextlib.contextmanager
+def staged_dir(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a fresh folder beside ``path``; when the block succeeds it replaces ``path`` whole.
+
+    A stage writes a folder of outputs (frames, masks, a COLMAP model) into the yielded folder; only a
+    finished folder is swapped in (the old one removed after), so an interrupted or failed stage
+    leaves the previous outputs as they were and never a mix of old and new files.
+    """
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.new.", dir=path.parent))
+    except OSError as exc:
+        raise PlantsplatError(os_error_message(exc, path)) from exc
+    os.chmod(tmp, 0o777 & ~_UMASK)  # mkdtemp makes 0700; outputs get the usual permissions
+    try:
+        yield tmp
+        old = None
+        if path.exists():
+            old = path.with_name(f".{path.name}.old")
+            _remove(old)
+            os.replace(path, old)
+        os.replace(tmp, path)
+        if old is not None:
+            _remove(old)
+    except OSError as exc:
+        _remove(tmp)
+        raise PlantsplatError(os_error_message(exc, path)) from exc
+    except BaseException:
+        _remove(tmp)
+        raise
+
+
+def _remove(path: Path) -> None:
+    import shutil
+
+    if path.is_dir():
+        shutil.rmtree(path, ignore_errors=True)
+    elif path.exists():
+        path.unlink(missing_ok=True)
 
 
 def _json_default(obj: Any) -> Any:
@@ -75,11 +144,6 @@ def write_json_atomic(path: str | os.PathLike, data: Any, indent: int = 2) -> No
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)
-
-
-def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
 
 
 def read_json(path: str | os.PathLike) -> Any:

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import logging
 import os
-import sys
 from collections.abc import Iterable, Iterator
 from typing import TypeVar
 
@@ -93,6 +92,3 @@ def progress(items: Iterable[T], description: str, total: int | None = None) -> 
             yield item
             bar.advance(task)
 
-
-def is_ci() -> bool:
-    return bool(os.environ.get("CI")) or not sys.stderr.isatty()

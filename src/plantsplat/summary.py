@@ -5,24 +5,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from plantsplat.traitdefs import TRAIT_KEYS
-
-UNITS = {
-    "height_cm": "cm",
-    "width1_cm": "cm",
-    "width2_cm": "cm",
-    "canopy_volume_cm3": "cm³",
-    "canopy_area_cm2": "cm²",
-    "fruit_count": "",
-}
-LABELS = {
-    "height_cm": "height",
-    "width1_cm": "width 1 (major)",
-    "width2_cm": "width 2 (minor)",
-    "canopy_volume_cm3": "canopy volume",
-    "canopy_area_cm2": "canopy area",
-    "fruit_count": "fruit count",
-}
+from plantsplat.traitdefs import TRAIT_KEYS, TRAIT_LABELS, TRAIT_UNITS
 
 
 def _num(v, key: str = "") -> str:
@@ -40,8 +23,11 @@ def print_summary(summary: dict, comparison: dict | None = None) -> None:
     from plantsplat.log import console
 
     traits = summary.get("traits") or {}
+    if traits.get("quality") == "failed":  # first, before any number: these must not be used
+        console.print("[bold red]RESULT FAILED its checks: do not use these traits.[/] "
+                      + "; ".join(traits.get("quality_reasons", [])[:3]))
     if traits:
-        t = Table(title="Plant traits")
+        t = Table(title="Plant traits" + (" (FAILED)" if traits.get("quality") == "failed" else ""))
         t.add_column("trait")
         t.add_column("estimate", justify="right")
         if comparison:
@@ -50,12 +36,12 @@ def print_summary(summary: dict, comparison: dict | None = None) -> None:
             t.add_column("error %", justify="right")
         t.add_column("unit")
         for key in TRAIT_KEYS:
-            row = [LABELS[key], _num(traits.get(key), key)]
+            row = [TRAIT_LABELS[key], _num(traits.get(key), key)]
             if comparison:
                 c = comparison.get(key) or {}
                 row += [_num(c.get("truth"), key), _num(c.get("error")),
                         "—" if c.get("pct_error") is None else f"{c['pct_error']:.2f}"]
-            row.append(UNITS[key])
+            row.append(TRAIT_UNITS[key])
             t.add_row(*row)
         console.print(t)
         flag = traits.get("quality")

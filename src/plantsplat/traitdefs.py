@@ -5,20 +5,39 @@ of ``plantsplat synth`` and the estimates of ``plantsplat traits`` mean exactly 
 All inputs are plant points only (leaves, petioles, crown, fruit, flowers; no pot, soil or cube) in
 a gravity-aligned frame (z up), in centimetres.
 
+Height is measured from the soil, as a ruler standing on the soil measures it: fruit hanging over the
+pot's rim does not change it. The paper's height, the z extent of all plant points, is kept as
+``height_extent_cm``; with no soil known (no pot) both are the extent.
+
 Example:
     >>> import numpy as np
     >>> pts = np.array([[0, 0, 0], [4, 0, 1], [0, 2, 3], [4, 2, 2.0]])
-    >>> round(plant_height(pts), 3), [round(w, 3) for w in pca_widths(pts)]
-    (3.0, [4.0, 2.0])
+    >>> round(plant_height(pts), 3), round(plant_height(pts, soil_z=0.5), 3), [round(w, 3) for w in pca_widths(pts)]
+    (3.0, 2.5, [4.0, 2.0])
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-TRAIT_KEYS = ("height_cm", "width1_cm", "width2_cm", "canopy_volume_cm3", "canopy_area_cm2", "fruit_count")
+TRAIT_KEYS = ("height_cm", "height_extent_cm", "width1_cm", "width2_cm", "canopy_volume_cm3", "canopy_area_cm2",
+              "fruit_count")
 """The keys shared by ``ground_truth.json`` and ``traits.json``. ``fruit_count`` counts ripe (red)
 fruit, the ones a colour model can tell from leaves; synthetic captures also give ``fruit_count_all``."""
+
+TRAIT_LABELS = {
+    "height_cm": "height from the soil",
+    "height_extent_cm": "height extent",
+    "width1_cm": "width 1 (major axis)",
+    "width2_cm": "width 2 (minor axis)",
+    "canopy_volume_cm3": "canopy volume",
+    "canopy_area_cm2": "canopy area",
+    "fruit_count": "fruit count",
+}
+"""How each trait is named for people (tables, reports, figures)."""
+TRAIT_UNITS = {"height_cm": "cm", "height_extent_cm": "cm", "width1_cm": "cm", "width2_cm": "cm",
+               "canopy_volume_cm3": "cm³", "canopy_area_cm2": "cm²", "fruit_count": ""}
+"""Each trait's unit."""
 
 
 def _check(points: np.ndarray) -> np.ndarray:
@@ -30,13 +49,12 @@ def _check(points: np.ndarray) -> np.ndarray:
     return pts
 
 
-def plant_height(points: np.ndarray, trim: float = 0.0) -> float:
-    """Height: max z minus min z (``trim`` > 0 uses the trim and 1-trim quantiles instead)."""
+def plant_height(points: np.ndarray, trim: float = 0.0, soil_z: float | None = None) -> float:
+    """Height: max z above the soil at ``soil_z``, or max z minus min z without one (the extent). ``trim`` > 0 uses
+    the trim and 1-trim quantiles instead of the extremes."""
     z = _check(points)[:, 2]
-    if trim > 0:
-        lo, hi = np.quantile(z, [trim, 1.0 - trim])
-        return float(hi - lo)
-    return float(z.max() - z.min())
+    lo, hi = np.quantile(z, [trim, 1.0 - trim]) if trim > 0 else (z.min(), z.max())
+    return float(hi - (lo if soil_z is None else soil_z))
 
 
 def pca_axes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -82,11 +100,12 @@ def canopy_area(points: np.ndarray) -> float:
     return float(ConvexHull(_check(points)[:, :2]).volume)  # in 2D, .volume is the area
 
 
-def geometric_traits(points: np.ndarray, trim: float = 0.0) -> dict[str, float]:
-    """All point-based traits (everything but the fruit count) under their shared names."""
+def geometric_traits(points: np.ndarray, trim: float = 0.0, soil_z: float | None = None) -> dict[str, float]:
+    """All point-based traits (everything but the fruit count) under their shared names; height from ``soil_z``."""
     w1, w2 = pca_widths(points, trim)
     return {
-        "height_cm": plant_height(points, trim),
+        "height_cm": plant_height(points, trim, soil_z),
+        "height_extent_cm": plant_height(points, trim),
         "width1_cm": w1,
         "width2_cm": w2,
         "canopy_volume_cm3": canopy_volume(points),

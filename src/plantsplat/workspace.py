@@ -43,8 +43,12 @@ IMAGE_PATTERN = "frame_{:05d}.png"
 class Workspace:
     root: Path
 
-    def __init__(self, root: str | os.PathLike):
+    def __init__(self, root: str | os.PathLike, must_exist: bool = False):
         object.__setattr__(self, "root", Path(root))
+        if must_exist and not self.root.is_dir():
+            what = "is not a folder" if self.root.exists() else "no such folder"
+            raise PlantsplatError(f"{self.root}: {what}; give the workspace made by `plantsplat frames` or `plantsplat run`",
+                                  exit_code=2)
 
     # frames
     @property

@@ -4,20 +4,22 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import tyro
 
-from plantsplat.batch import BatchOptions
+from plantsplat.batch import BatchConfig
 from plantsplat.commands import Command
 
 
 @dataclass
-class BatchConfig:
+class BatchCommand:
     """Run every plant listed in MANIFEST.csv (columns plant_id, input) into OUT/plants/<plant_id>/.
 
     One plant's failure does not stop the others; re-running resumes. Writes OUT/traits.csv and,
     with --ground-truth, the paper's accuracy table (R2, RMSE, MAPE, MAE, Acc) and scatter plots.
-    Exit code 0 only when every plant succeeded.
+    Exit code 0 only when every plant succeeded; 4 when the only failures are results that failed their
+    checks (marked failed in traits.csv), 1 when a plant could not be processed at all.
     Example: plantsplat batch plants.csv --out experiment1 --workers 2 --ground-truth measured.csv
     """
 
@@ -25,11 +27,12 @@ class BatchConfig:
     """CSV with columns plant_id and input (a video or image folder; relative to the manifest)."""
     out: Path
     """Folder for the per-plant workspaces and the batch tables."""
-    batch: BatchOptions = field(default_factory=BatchOptions)
+    batch: Annotated[BatchConfig, tyro.conf.arg(name="")] = field(default_factory=BatchConfig)
 
 
-def run(cfg: BatchConfig) -> int:
+def run(cfg: BatchCommand) -> int:
     from plantsplat.batch import run_batch
+    from plantsplat.errors import EXIT_RESULT_FAILED
     from plantsplat.log import console
 
     summary = run_batch(cfg.manifest, cfg.out, cfg.batch)
@@ -50,7 +53,12 @@ def run(cfg: BatchConfig) -> int:
                 "—" if m.get(k) is None else f"{m[k]:.3f}" for k in ("r2", "rmse", "mape", "mae", "acc")
             ])
         console.print(t)
-    return 0 if summary["n_failed"] == 0 else 1
+    if summary["n_failed"] == 0:
+        return 0
+    results = {p["status"] for p in summary["plants"]}
+    # only results that failed their checks (every file written): the code of a failed result
+    return EXIT_RESULT_FAILED if all(p["status"] == "ok" or (p.get("traits") or {}).get("quality") == "failed"
+                                     for p in summary["plants"]) and "failed" in results else 1
 
 
-COMMAND = Command(name="batch", config=BatchConfig, run=run, help="Many plants from a manifest (local or Ray).", order=80)
+COMMAND = Command(name="batch", config=BatchCommand, run=run, help="Many plants from a manifest (local or Ray).", order=80)

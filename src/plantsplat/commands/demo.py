@@ -4,16 +4,19 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
+
+import tyro
 
 from plantsplat.commands import Command
-from plantsplat.pipeline import RunOptions
+from plantsplat.pipeline import RunConfig
 
 DEMO_SEED = 2025
 """Seed of the built-in sample capture."""
 
 
 @dataclass
-class DemoConfig:
+class DemoCommand:
     """Render the built-in synthetic strawberry capture (a phone video with a 10 cm ArUco cube), run the
     whole pipeline on its video, and print the estimated traits next to the exact ground truth.
 
@@ -24,16 +27,17 @@ class DemoConfig:
     """Folder for the capture (OUT/capture) and the workspace (OUT/workspace)."""
     capture_seed: int = DEMO_SEED
     """Seed of the synthetic plant and scene (the built-in sample is the default)."""
-    frames: int = 120
+    capture_frames: int = 120
     """Video frames to render."""
-    width: int = 540
+    capture_width: int = 540
     """Video width in pixels (portrait)."""
-    height: int = 960
+    capture_height: int = 960
     """Video height in pixels."""
-    options: RunOptions = field(default_factory=RunOptions)
+    options: Annotated[RunConfig, tyro.conf.arg(name="")] = field(default_factory=RunConfig)
 
 
-def run(cfg: DemoConfig) -> int:
+def run(cfg: DemoCommand) -> int:
+    from plantsplat.errors import EXIT_RESULT_FAILED
     from plantsplat.io import read_json
     from plantsplat.log import console, get_logger
     from plantsplat.pipeline import run_pipeline
@@ -43,7 +47,8 @@ def run(cfg: DemoConfig) -> int:
     log = get_logger("demo")
     capture = cfg.out / "capture"
     gt_path = capture / "ground_truth.json"
-    wanted = {"seed": cfg.capture_seed, "frames": cfg.frames, "width": cfg.width, "height": cfg.height}
+    wanted = {"seed": cfg.capture_seed, "frames": cfg.capture_frames, "width": cfg.capture_width,
+              "height": cfg.capture_height}
     reuse = False
     if gt_path.is_file() and (capture / "video.mp4").is_file():
         gt = read_json(gt_path)
@@ -59,19 +64,21 @@ def run(cfg: DemoConfig) -> int:
             raise PlantsplatError(
                 f"{capture}: holds a different capture; choose another --out or delete that folder", exit_code=2
             )
-        log.info("rendering the sample capture (seed %d, %d frames, %dx%d)", cfg.capture_seed, cfg.frames, cfg.width, cfg.height)
-        generate(SynthConfig(seed=cfg.capture_seed, out=capture, frames=cfg.frames, width=cfg.width, height=cfg.height))
+        log.info("rendering the sample capture (seed %d, %d frames, %dx%d)", cfg.capture_seed, cfg.capture_frames,
+                 cfg.capture_width, cfg.capture_height)
+        generate(SynthConfig(seed=cfg.capture_seed, out=capture, frames=cfg.capture_frames, width=cfg.capture_width,
+                             height=cfg.capture_height))
     opts = cfg.options
     opts.ground_truth = gt_path
     summary = run_pipeline(capture / "video.mp4", cfg.out / "workspace", opts)
     console.rule("plantsplat demo: estimate vs ground truth")
     print_summary(summary, (summary.get("evaluation") or {}).get("traits"))
-    return 0
+    return EXIT_RESULT_FAILED if (summary.get("traits") or {}).get("quality") == "failed" else 0
 
 
 COMMAND = Command(
     name="demo",
-    config=DemoConfig,
+    config=DemoCommand,
     run=run,
     help="Render the sample capture, run everything, compare with the truth.",
     order=75,

@@ -8,7 +8,7 @@ from plantsplat.commands import Command
 
 
 @dataclass
-class DoctorConfig:
+class DoctorCommand:
     """Check the installation: library versions, headless OpenGL, CUDA and gsplat, optional models."""
 
     json: bool = False
@@ -58,7 +58,7 @@ def collect() -> list[tuple[str, bool, str]]:
     return rows
 
 
-def run(cfg: DoctorConfig) -> int:
+def run(cfg: DoctorCommand) -> int:
     rows = collect()
     if cfg.json:
         import json
@@ -79,4 +79,4 @@ def run(cfg: DoctorConfig) -> int:
     return 0
 
 
-COMMAND = Command(name="doctor", config=DoctorConfig, run=run, help="Check what this machine can run.", order=99)
+COMMAND = Command(name="doctor", config=DoctorCommand, run=run, help="Check what this machine can run.", order=99)

@@ -11,7 +11,7 @@ from plantsplat.commands import Command
 
 
 @dataclass
-class EvaluateConfig:
+class EvaluateCommand:
     """Compare WS/traits.json with ground truth and write WS/evaluation.json.
 
     Example: plantsplat evaluate ws/plant01 --ground-truth measured.csv --plant-id plant01
@@ -25,16 +25,16 @@ class EvaluateConfig:
     """Row of the CSV to use (default: the workspace folder name)."""
 
 
-def run(cfg: EvaluateConfig) -> int:
-    from plantsplat.pipeline import evaluate_workspace, summarize_workspace
+def run(cfg: EvaluateCommand) -> int:
+    from plantsplat.pipeline import evaluate_stage, summarize_workspace
     from plantsplat.summary import print_summary
     from plantsplat.workspace import Workspace
 
-    ws = Workspace(cfg.ws)
+    ws = Workspace(cfg.ws, must_exist=True)
     plant_id = cfg.plant_id
     if plant_id is None and cfg.ground_truth.suffix.lower() == ".csv":
         plant_id = ws.root.name
-    result = evaluate_workspace(ws, cfg.ground_truth, plant_id)
+    result = evaluate_stage(ws, cfg.ground_truth, plant_id, force=True)
     summary = summarize_workspace(ws)
     summary.pop("metrics", None)
     summary.pop("run", None)
@@ -43,5 +43,5 @@ def run(cfg: EvaluateConfig) -> int:
 
 
 COMMAND = Command(
-    name="evaluate", config=EvaluateConfig, run=run, help="Compare one plant's traits with ground truth.", order=58
+    name="evaluate", config=EvaluateCommand, run=run, help="Compare one plant's traits with ground truth.", order=58
 )

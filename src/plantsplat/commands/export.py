@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import tyro
 
@@ -18,17 +19,16 @@ class ExportCommand:
 
     workspace: tyro.conf.Positional[Path]
     """The plant's workspace folder."""
-    export: ExportConfig = field(default_factory=ExportConfig)
+    export: Annotated[ExportConfig, tyro.conf.arg(name="")] = field(default_factory=ExportConfig)
+    force: bool = False
+    """Write the PLYs again even when they are up to date."""
 
 
 def run(cfg: ExportCommand) -> int:
-    from plantsplat.errors import PlantsplatError
-    from plantsplat.train import export_workspace
+    from plantsplat.pipeline import export_stage
     from plantsplat.workspace import Workspace
 
-    if not cfg.workspace.is_dir():
-        raise PlantsplatError(f"{cfg.workspace}: no such workspace folder", exit_code=2)
-    export_workspace(Workspace(cfg.workspace), cfg.export)
+    export_stage(Workspace(cfg.workspace, must_exist=True), cfg.export, cfg.force)
     return 0
 
 

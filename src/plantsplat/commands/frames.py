@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import tyro
 
 from plantsplat.commands import Command
+from plantsplat.frames import FramesConfig
 
 
 @dataclass
-class FramesConfig:
+class FramesCommand:
     """Choose sharp frames spread over a video (or image folder) and write them to WS/images/.
 
     Example: plantsplat frames plant01.mov --out ws/plant01 --num 120 --max-size 960
@@ -21,40 +23,23 @@ class FramesConfig:
     """Video file (mp4/mov, H.264 or HEVC; phone rotation honoured) or a folder of images."""
     out: Path
     """Workspace folder to write images/ and frames.json into (created if missing)."""
-    num: int = 120
-    """Number of frames to aim for (the paper used 100-150): one per equal stretch of the capture."""
-    max_size: int = 960
-    """Longest side of the written images in pixels (1/4 of 4K = 960); never upscaled."""
-    min_frames: int = 8
-    """Fewer usable frames than this is an error."""
-    blur_ratio: float = 0.35
-    """Drop a chosen frame whose sharpness is below this fraction of the median chosen frame."""
-    dup_threshold: float = 1.0
-    """Drop a frame whose 64-px thumbnail differs from the previous kept one by less than this (0-255)."""
+    options: Annotated[FramesConfig, tyro.conf.arg(name="")] = field(default_factory=FramesConfig)
+    """Frame selection."""
     force: bool = False
-    """Re-extract even if this input was already extracted; replaces the images in WS/images/."""
+    """Extract again even when the frames are up to date, or replace images/ this stage did not write."""
 
 
-def run(cfg: FramesConfig) -> int:
-    from plantsplat.frames import extract_frames
+def run(cmd: FramesCommand) -> int:
+    from plantsplat.pipeline import frames_stage
     from plantsplat.workspace import Workspace
 
-    extract_frames(
-        cfg.input,
-        Workspace(cfg.out),
-        num=cfg.num,
-        max_size=cfg.max_size,
-        force=cfg.force,
-        min_frames=cfg.min_frames,
-        blur_ratio=cfg.blur_ratio,
-        dup_threshold=cfg.dup_threshold,
-    )
+    frames_stage(Workspace(cmd.out), cmd.input, cmd.options, cmd.force)
     return 0
 
 
 COMMAND = Command(
     name="frames",
-    config=FramesConfig,
+    config=FramesCommand,
     run=run,
     help="Video or image folder -> sharp frames spread over the capture (WS/images/).",
     order=20,

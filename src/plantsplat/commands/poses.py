@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import tyro
 
@@ -16,12 +17,12 @@ class PosesCommand:
     """Estimate camera poses and sparse points for WS/images, in centimetres with z up (cube frame).
 
     Writes WS/sparse/0 (COLMAP binary), WS/sparse_text/0 (text), WS/transforms.json (nerfstudio),
-    WS/sparse_points.ply and WS/poses.json (report). Re-running with the same options reuses them.
+    WS/sparse_points.ply and WS/poses.json (report). Re-running with the same options and frames reuses them.
     """
 
     workspace: tyro.conf.Positional[Path]
     """Workspace folder (with images/ from `plantsplat frames`)."""
-    options: PosesConfig = field(default_factory=PosesConfig)
+    options: Annotated[PosesConfig, tyro.conf.arg(name="")] = field(default_factory=PosesConfig)
     """SfM, import and calibration options."""
     force: bool = False
     """Redo the stage even when its outputs are up to date."""
@@ -30,12 +31,12 @@ class PosesCommand:
 def run(cmd: PosesCommand) -> int:
     import logging
 
-    from plantsplat.poses import estimate_poses
+    from plantsplat.pipeline import poses_stage
     from plantsplat.workspace import Workspace
 
     if logging.getLogger("plantsplat").isEnabledFor(logging.DEBUG):
         cmd.options.colmap_log = True
-    estimate_poses(Workspace(cmd.workspace), cmd.options, force=cmd.force)
+    poses_stage(Workspace(cmd.workspace, must_exist=True), cmd.options, cmd.force)
     return 0
 
 

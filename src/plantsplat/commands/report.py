@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import tyro
 
 from plantsplat.commands import Command
+from plantsplat.report.config import ReportConfig
 
 
 @dataclass
-class ReportConfig:
+class ReportCommand:
     """Write WS/report.html: traits and measurement figure, interactive 3D view of the Gaussian splat and
     point cloud, test-view renders beside ground truth, image metrics, frames with masks, camera path,
     run times. Parts that do not exist yet are named in the report. Opens offline from file://."""
@@ -20,31 +22,22 @@ class ReportConfig:
     """The plant's workspace folder."""
     out: Path | None = None
     """Where to write the report (default: WS/report.html)."""
-    max_gaussians: int = 250_000
-    """Keep at most this many Gaussians (the most visible) in the 3D viewer; 32 bytes each."""
-    max_points: int = 100_000
-    """Keep at most this many points in the point-cloud view."""
-    max_frames: int = 24
-    """Frames in the contact sheet."""
-    viewer: bool = True
-    """Include the interactive 3D viewer (about 3.2 MB of JavaScript); --no-viewer leaves it out."""
+    options: Annotated[ReportConfig, tyro.conf.arg(name="")] = field(default_factory=ReportConfig)
 
 
-def run(cfg: ReportConfig) -> int:
+def run(cfg: ReportCommand) -> int:
     from plantsplat.errors import UsageError
     from plantsplat.log import get_logger
-    from plantsplat.report import ReportOptions, write_report
+    from plantsplat.report import write_report
 
-    for name in ("max_gaussians", "max_points", "max_frames"):
-        if getattr(cfg, name) < 1:
-            raise UsageError(f"--{name.replace('_', '-')} must be at least 1, got {getattr(cfg, name)}")
-    opts = ReportOptions(max_gaussians=cfg.max_gaussians, max_points=cfg.max_points, max_frames=cfg.max_frames,
-                         viewer=cfg.viewer)
-    path = write_report(cfg.workspace, cfg.out, opts)
+    for name in ("max_gaussians", "max_points", "max_frames", "max_render_pairs"):
+        if getattr(cfg.options, name) < 1:
+            raise UsageError(f"--{name.replace('_', '-')} must be at least 1, got {getattr(cfg.options, name)}")
+    path = write_report(cfg.workspace, cfg.out, cfg.options)
     get_logger(__name__).info("open %s in a browser (works offline)", path.resolve().as_uri())
     print(path)
     return 0
 
 
-COMMAND = Command(name="report", config=ReportConfig, run=run, help="Write an HTML report with a 3D splat viewer.",
+COMMAND = Command(name="report", config=ReportCommand, run=run, help="Write an HTML report with a 3D splat viewer.",
                   order=90)

@@ -4,19 +4,22 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import tyro
 
 from plantsplat.commands import Command
-from plantsplat.pipeline import RunOptions
+from plantsplat.pipeline import RunConfig
 
 
 @dataclass
-class RunConfig:
-    """Frames, masks, poses, training, export, traits (and evaluation, report) in one go.
+class RunCommand:
+    """Frames, poses, masks, training, export, traits (and evaluation, report) in one go.
 
-    Each stage is skipped when its outputs are up to date, so an interrupted run resumes where it
-    stopped. Example: plantsplat run plant01.mov --out ws/plant01
+    A stage runs again only when its options, its inputs or its outputs changed since it last
+    succeeded, so an interrupted run resumes where it stopped and a failed stage is never built on. Exits with code 4
+    when the traits failed their checks (every file is written; traits.json
+    says which check). Example: plantsplat run plant01.mov --out ws/plant01
     """
 
     input: tyro.conf.Positional[Path]
@@ -27,19 +30,22 @@ class RunConfig:
     """Ground truth to evaluate against: a synth ground_truth.json or a CSV (plant_id + trait columns)."""
     plant_id: str | None = None
     """Row of a ground-truth CSV (default: the workspace folder name)."""
-    options: RunOptions = field(default_factory=RunOptions)
+    force: bool = False
+    """Run every stage again, even those that are up to date."""
+    options: Annotated[RunConfig, tyro.conf.arg(name="")] = field(default_factory=RunConfig)
 
 
-def run(cfg: RunConfig) -> int:
+def run(cfg: RunCommand) -> int:
+    from plantsplat.errors import EXIT_RESULT_FAILED
     from plantsplat.pipeline import run_pipeline
     from plantsplat.summary import print_summary
 
     cfg.options.ground_truth = cfg.ground_truth
     cfg.options.plant_id = cfg.plant_id
-    summary = run_pipeline(cfg.input, cfg.out, cfg.options)
+    summary = run_pipeline(cfg.input, cfg.out, cfg.options, cfg.force)
     evaluation = (summary.get("evaluation") or {}).get("traits")
     print_summary(summary, evaluation)
-    return 0
+    return EXIT_RESULT_FAILED if (summary.get("traits") or {}).get("quality") == "failed" else 0
 
 
-COMMAND = Command(name="run", config=RunConfig, run=run, help="The whole pipeline for one plant.", order=70)
+COMMAND = Command(name="run", config=RunCommand, run=run, help="The whole pipeline for one plant.", order=70)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import tyro
 
@@ -21,17 +22,17 @@ class SegmentCommand:
 
     workspace: tyro.conf.Positional[Path]
     """Workspace folder (after `plantsplat poses`)."""
-    options: SegmentConfig = field(default_factory=SegmentConfig)
+    options: Annotated[SegmentConfig, tyro.conf.arg(name="")] = field(default_factory=SegmentConfig)
     """Segmenter options."""
     force: bool = False
     """Recompute even when the masks are up to date."""
 
 
 def run(cmd: SegmentCommand) -> int:
-    from plantsplat.segment import segment_workspace
+    from plantsplat.pipeline import segment_stage
     from plantsplat.workspace import Workspace
 
-    segment_workspace(Workspace(cmd.workspace), cmd.options, force=cmd.force)
+    segment_stage(Workspace(cmd.workspace, must_exist=True), cmd.options, cmd.force)
     return 0
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import tyro
 
@@ -21,17 +22,16 @@ class TrainCommand:
 
     workspace: tyro.conf.Positional[Path]
     """The plant's workspace folder."""
-    train: TrainConfig = field(default_factory=TrainConfig)
+    train: Annotated[TrainConfig, tyro.conf.arg(name="")] = field(default_factory=TrainConfig)
+    force: bool = False
+    """Train afresh even when the model is up to date for these options, frames, masks and poses."""
 
 
 def run(cfg: TrainCommand) -> int:
-    from plantsplat.errors import PlantsplatError
-    from plantsplat.train import train_workspace
+    from plantsplat.pipeline import train_stage
     from plantsplat.workspace import Workspace
 
-    if not cfg.workspace.is_dir():
-        raise PlantsplatError(f"{cfg.workspace}: no such workspace folder", exit_code=2)
-    train_workspace(Workspace(cfg.workspace), cfg.train)
+    train_stage(Workspace(cfg.workspace, must_exist=True), cfg.train, cfg.force)
     return 0
 
 

@@ -4,18 +4,21 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import tyro
 
 from plantsplat.commands import Command
-from plantsplat.traits.measure import TraitSettings
+from plantsplat.traitdefs import TRAIT_KEYS
+from plantsplat.traits.measure import TraitsConfig
 
 
 @dataclass
-class TraitsConfig:
+class TraitsCommand:
     """Measure the plant: DBSCAN clusters, the cube by its oriented bounding box and fitted face planes
     (scale cross-check or scale), height, PCA widths, canopy volume and area, fruit count.
-    Writes WS/traits.json, WS/traits.csv and WS/traits.png."""
+    Writes WS/traits.json, WS/traits.csv and WS/traits.png. Exits with code 4 when the result failed its
+    checks (traits.json says which; the files are written all the same)."""
 
     workspace: tyro.conf.Positional[Path]
     """Plant workspace folder (reads export/splat.ply, or export/points.ply with --extent-sigma 0,
@@ -27,18 +30,20 @@ class TraitsConfig:
     """Whether the cloud is in the ArUco-calibrated frame (cm, z up). Default: from WS/poses.json scale_source."""
     figure: bool = True
     """Write WS/traits.png (top view with PCA widths, side view with height)."""
-    settings: TraitSettings = field(default_factory=TraitSettings)
+    settings: Annotated[TraitsConfig, tyro.conf.arg(name="")] = field(default_factory=TraitsConfig)
     """Measurement settings."""
+    force: bool = False
+    """Measure again even when traits.json is up to date for these settings and this cloud."""
 
 
-def run(cfg: TraitsConfig) -> int:
-    from plantsplat.errors import UsageError
+def run(cfg: TraitsCommand) -> int:
+    from plantsplat.errors import EXIT_RESULT_FAILED, UsageError
+    from plantsplat.io import read_json
     from plantsplat.log import console
-    from plantsplat.traits.measure import traits_workspace
+    from plantsplat.pipeline import traits_stage
     from plantsplat.workspace import Workspace
 
-    if not cfg.workspace.is_dir():
-        raise UsageError(f"{cfg.workspace}: workspace folder not found; give the folder made by `plantsplat frames`")
+    ws = Workspace(cfg.workspace, must_exist=True)
     s = cfg.settings
     if not 0 <= s.trim < 0.5:
         raise UsageError(f"--trim {s.trim}: must be in [0, 0.5)")
@@ -46,20 +51,20 @@ def run(cfg: TraitsConfig) -> int:
         raise UsageError(f"--eps {s.eps}: must be positive")
     if s.min_points < 1 or s.merge_distance_cm < 0 or s.cube_size_cm <= 0:
         raise UsageError("--min-points must be >= 1, --merge-distance-cm >= 0 and --cube-size-cm > 0")
-    ws = Workspace(cfg.workspace)
-    out = traits_workspace(ws, s, points_path=cfg.points, calibrated=cfg.calibrated, figure=cfg.figure)
+    traits_stage(ws, s, cfg.force, points=cfg.points, calibrated=cfg.calibrated, figure=cfg.figure)
+    out = read_json(ws.traits_json)
     vals = "  ".join(
         f"{k}={out[k]:.2f}" if isinstance(out[k], float) else f"{k}={out[k]}"
-        for k in ("height_cm", "width1_cm", "width2_cm", "canopy_volume_cm3", "canopy_area_cm2", "fruit_count")
+        for k in TRAIT_KEYS
     )
     console.print(f"traits ({out['quality']}, scale: {out['scale'].get('source')}): {vals}", highlight=False)
     console.print(f"wrote {ws.traits_json}, {ws.traits_csv}" + (f", {ws.traits_png}" if cfg.figure else ""))
-    return 0
+    return EXIT_RESULT_FAILED if out["quality"] == "failed" else 0
 
 
 COMMAND = Command(
     name="traits",
-    config=TraitsConfig,
+    config=TraitsCommand,
     run=run,
     help="Plant traits (height, PCA widths, canopy volume/area, fruit count) from the point cloud.",
     order=60,

@@ -1,8 +1,8 @@
 """Camera poses: COLMAP SfM through pycolmap, ArUco-cube metric calibration, COLMAP/nerfstudio interop.
 
-Example:
-    >>> from plantsplat.poses import PosesConfig, estimate_poses
-    >>> report = estimate_poses("ws/plant_01", PosesConfig(matcher="exhaustive"))  # doctest: +SKIP
+Usage:
+    from plantsplat.poses import PosesConfig, estimate_poses
+    report = estimate_poses("ws/plant_01", PosesConfig(matcher="exhaustive"))
 """
 
 from plantsplat.poses.estimate import PosesConfig, estimate_poses, outputs

@@ -16,11 +16,10 @@ the similarity ``cube_from_model`` (``x_cube = s R x_model + t``):
 The per-detection reprojection errors are also the model's consistency check: a split or wrong
 model cannot make the cube reproject where its markers are detected in every frame.
 
-Example:
-    >>> det = read_markers(Path("ws/markers.json")).frames   # doctest: +SKIP
-    >>> cal = calibrate(reconstruction, det)                  # doctest: +SKIP
-    >>> cal.scale, cal.median_residual_px, cal.consistent     # doctest: +SKIP
-    (12.7, 0.41, True)
+Usage:
+    det = read_markers(Path("ws/markers.json")).frames
+    cal = calibrate(reconstruction, det)
+    cal.scale, cal.median_residual_px, cal.consistent
 """
 
 from __future__ import annotations
@@ -109,30 +108,11 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.nda
     return s, R, mu_d - s * R @ mu_s
 
 
-def calibrate(
-    rec,
-    detections: dict[str, dict[int, np.ndarray]],
-    cube: CubeSpec = CubeSpec(),
-    max_residual_px: float = 3.0,
-    min_frames: int = 2,
-) -> Calibration | None:
-    """Estimate ``cube_from_model`` for the pycolmap Reconstruction ``rec`` from marker ``detections``.
-
-    Returns ``None`` when fewer than ``min_frames`` registered frames show a marker or no marker
-    corner can be triangulated consistently. ``consistent`` is False when the cube does not
-    reproject onto its detections in most frames (a wrong or badly split model).
-    """
+def _triangulate_corners(obs, cams, cube: CubeSpec):
+    """Each marker corner seen in >= 2 frames triangulated in the model. Returns ``(model_pts, cube_pts)``
+    ``[P, 3]`` pairs (None when fewer than four)."""
     import pycolmap
-    from scipy.optimize import least_squares
-    from scipy.spatial.transform import Rotation
 
-    cams = _cam_matrices(rec, list(detections))
-    obs = [(n, mid, c) for n, d in detections.items() if n in cams for mid, c in d.items()]
-    frames = {n for n, _, _ in obs}
-    if len(frames) < min_frames:
-        return None
-
-    # 1. triangulate each marker corner seen in >= 2 frames
     tri_opts = pycolmap.EstimateTriangulationOptions()
     tri_opts.residual_type = pycolmap.TriangulationResidualType.REPROJECTION_ERROR
     tri_opts.ransac.max_error = 4.0
@@ -143,10 +123,10 @@ def calibrate(
         if len(seen) < 2:
             continue
         corners3 = cube.marker_corners(mid)  # [4, 3]
+        poses = [pycolmap.Rigid3d(cams[n][0]) for n, _ in seen]
+        cameras = [cams[n][1] for n, _ in seen]
         for k in range(4):
             pts = np.array([c[k] for _, c in seen], dtype=np.float64)  # [m, 2]
-            poses = [pycolmap.Rigid3d(cams[n][0]) for n, _ in seen]
-            cameras = [cams[n][1] for n, _ in seen]
             try:
                 res = pycolmap.estimate_triangulation(pts, poses, cameras, tri_opts)
             except Exception:  # degenerate geometry (all views from one place)
@@ -156,20 +136,24 @@ def calibrate(
             model_pts.append(np.asarray(res["xyz"]).ravel())
             cube_pts.append(corners3[k])
     if len(model_pts) < 4:
-        return None
-    model_pts, cube_pts = np.array(model_pts), np.array(cube_pts)  # [P, 3]
+        return None, None
+    return np.array(model_pts), np.array(cube_pts)
 
-    # 2. robust similarity model -> cube (the threshold is in centimetres, the cube's units)
+
+def _robust_similarity(model_pts: np.ndarray, cube_pts: np.ndarray, cube: CubeSpec):
+    """Similarity model -> cube by RANSAC (threshold in centimetres, the cube's units), refitted on its
+    inliers. Returns ``(s, R, t, geometric_ok)``: ok when the triangulated corners do form the cube."""
+    import pycolmap
+
     ransac = pycolmap.RANSACOptions()
     ransac.max_error = 0.05 * cube.size
     ransac.random_seed = 0
-    sim = None
     try:
         sim = pycolmap.estimate_sim3d_robust(model_pts, cube_pts, ransac)
     except Exception:
         sim = None
-    if sim is not None and "tgt_from_src" in (sim if isinstance(sim, dict) else {}):
-        sim = sim["tgt_from_src"]
+    if isinstance(sim, dict):
+        sim = sim.get("tgt_from_src")
     if sim is not None:
         M = np.asarray(sim.matrix())  # [3, 4] = [sR | t]
         s0 = float(np.cbrt(np.linalg.det(M[:, :3])))
@@ -180,58 +164,104 @@ def calibrate(
     inl = resid < ransac.max_error
     if inl.sum() >= 4:
         s0, R0, t0 = umeyama(model_pts[inl], cube_pts[inl])
-    geometric_ok = inl.sum() >= max(4, 0.5 * len(inl))  # the triangulated corners do form the cube
+    return s0, R0, t0, bool(inl.sum() >= max(4, 0.5 * len(inl)))
 
-    # 3. refine the cube's pose in the model by reprojection over all detections
-    # parametrise model_from_cube: x_model = sm * Rm @ x_cube + tm
-    sm, Rm = 1.0 / s0, R0.T
-    tm = -sm * Rm @ t0
-    X = {mid: cube.marker_corners(mid) for mid in {m for _, m, _ in obs}}
 
-    def residuals(p, use):
+class _CubeReprojection:
+    """Reprojection residuals of the cube's marker corners for ``model_from_cube`` parameters
+    ``p = [rotvec (3), t (3), log s]`` (``x_model = s R x_cube + t``)."""
+
+    def __init__(self, obs, cams, cube: CubeSpec):
+        self.obs, self.cams = obs, cams
+        self.X = {mid: cube.marker_corners(mid) for mid in {m for _, m, _ in obs}}
+
+    def residuals(self, p, use):
+        from scipy.spatial.transform import Rotation
+
         R = Rotation.from_rotvec(p[:3]).as_matrix()
         s = np.exp(p[6])
         out = []
-        for (n, mid, c), u in zip(obs, use):
+        for (n, mid, c), u in zip(self.obs, use):
             if not u:
                 continue
-            Xm = s * X[mid] @ R.T + p[3:6]
-            out.append((_project(cams[n][0], cams[n][1], Xm) - c).ravel())
+            Xm = s * self.X[mid] @ R.T + p[3:6]
+            out.append((_project(self.cams[n][0], self.cams[n][1], Xm) - c).ravel())
         return np.concatenate(out)
 
-    p = np.concatenate([Rotation.from_matrix(Rm).as_rotvec(), tm, [np.log(sm)]])
-    use = np.ones(len(obs), dtype=bool)
-    for _ in range(3):
-        if use.sum() == 0:
-            break
-        p = least_squares(residuals, p, args=(use,), loss="huber", f_scale=1.0, x_scale="jac").x
-        r = residuals(p, np.ones(len(obs), dtype=bool)).reshape(len(obs), 4, 2)
-        rms = np.sqrt((r**2).sum(-1).mean(-1))  # [D] per detection
-        new_use = rms <= max(max_residual_px, 3.0 * float(np.median(rms)))
-        new_use &= rms <= 5.0 * max_residual_px
-        if np.array_equal(new_use, use):
-            break
-        use = new_use
-    Rm = Rotation.from_rotvec(p[:3]).as_matrix()
-    sm, tm = float(np.exp(p[6])), p[3:6]
-    if not np.isfinite(p).all() or abs(np.log(sm * s0)) > np.log(2.0):
+    def rms(self, p) -> np.ndarray:
+        """``[D]`` reprojection RMS per detection (px)."""
+        r = self.residuals(p, np.ones(len(self.obs), dtype=bool)).reshape(len(self.obs), 4, 2)
+        return np.sqrt((r**2).sum(-1).mean(-1))
+
+    def refine(self, p, max_residual_px: float):
+        """Huber least squares, detections far above the median residual left out, up to three times."""
+        from scipy.optimize import least_squares
+
+        use = np.ones(len(self.obs), dtype=bool)
+        for _ in range(3):
+            if use.sum() == 0:
+                break
+            p = least_squares(self.residuals, p, args=(use,), loss="huber", f_scale=1.0, x_scale="jac").x
+            rms = self.rms(p)
+            new_use = rms <= max(max_residual_px, 3.0 * float(np.median(rms)))
+            new_use &= rms <= 5.0 * max_residual_px
+            if np.array_equal(new_use, use):
+                break
+            use = new_use
+        return p
+
+
+def _params(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``model_from_cube`` parameters for the similarity cube_from_model ``(s, R, t)``."""
+    from scipy.spatial.transform import Rotation
+
+    sm, Rm = 1.0 / s, R.T
+    return np.concatenate([Rotation.from_matrix(Rm).as_rotvec(), -sm * Rm @ t, [np.log(sm)]])
+
+
+def calibrate(
+    rec,
+    detections: dict[str, dict[int, np.ndarray]],
+    cube: CubeSpec = CubeSpec(),
+    max_residual_px: float = 3.0,
+    min_frames: int = 2,
+) -> Calibration | None:
+    """Estimate ``cube_from_model`` for the pycolmap Reconstruction ``rec`` from marker ``detections``.
+
+    The marker corners are triangulated, a robust similarity maps them onto the cube, and the cube's pose
+    is refined by reprojection over all detections.
+
+    Returns ``None`` when fewer than ``min_frames`` registered frames show a marker or no marker
+    corner can be triangulated consistently. ``consistent`` is False when the cube does not
+    reproject onto its detections in most frames (a wrong or badly split model).
+    """
+    from scipy.spatial.transform import Rotation
+
+    cams = _cam_matrices(rec, list(detections))
+    obs = [(n, mid, c) for n, d in detections.items() if n in cams for mid, c in d.items()]
+    frames = {n for n, _, _ in obs}
+    if len(frames) < min_frames:
+        return None
+    model_pts, cube_pts = _triangulate_corners(obs, cams, cube)
+    if model_pts is None:
+        return None
+    s0, R0, t0, geometric_ok = _robust_similarity(model_pts, cube_pts, cube)
+    reproj = _CubeReprojection(obs, cams, cube)
+    p = reproj.refine(_params(s0, R0, t0), max_residual_px)
+    if not np.isfinite(p).all() or abs(np.log(np.exp(p[6]) * s0)) > np.log(2.0):
         # the refinement ran away (a wrong model): fall back to the direct fit, flagged inconsistent
-        sm, Rm = 1.0 / s0, R0.T
-        tm = -sm * Rm @ t0
+        p = _params(s0, R0, t0)
         geometric_ok = False
-        p = np.concatenate([Rotation.from_matrix(Rm).as_rotvec(), tm, [np.log(sm)]])
-        r = residuals(p, np.ones(len(obs), dtype=bool)).reshape(len(obs), 4, 2)
-        rms = np.sqrt((r**2).sum(-1).mean(-1))
+    rms = reproj.rms(p)
+    Rm, sm, tm = Rotation.from_rotvec(p[:3]).as_matrix(), float(np.exp(p[6])), p[3:6]
     s, R = 1.0 / sm, Rm.T
     t = -s * R @ tm
-
     kept = rms <= max_residual_px
     frame_res = {}
     for n in sorted(frames):
         e = [rms[i] for i, (name, _, _) in enumerate(obs) if name == n and kept[i]]
         if e:
             frame_res[n] = float(np.sqrt(np.mean(np.square(e))))
-    rejected = [(n, mid, float(rms[i])) for i, (n, mid, _) in enumerate(obs) if not kept[i]]
     ratio = float(kept.mean())
     med = float(np.median(rms))
     return Calibration(
@@ -241,7 +271,7 @@ def calibrate(
         median_residual_px=med,
         frames_with_markers=len(frames),
         detections_used=int(kept.sum()),
-        detections_rejected=rejected,
+        detections_rejected=[(n, mid, float(rms[i])) for i, (n, mid, _) in enumerate(obs) if not kept[i]],
         frame_residuals_px=frame_res,
         inlier_ratio=ratio,
         consistent=bool(geometric_ok and med <= max_residual_px and ratio >= 0.8),

@@ -1,7 +1,7 @@
 """Checks of a registered model against what the capture itself says.
 
-Each check has a name, a measured value and the threshold it is held to (:class:`Check`); the poses
-stage records them all in ``poses.json`` and fails when one that matters fails. What they look at:
+Each check has a name, a measured value and the threshold it is held to (:class:`plantsplat.checks.Check`);
+the poses stage records them all in ``poses.json`` and fails when one that matters fails. What they look at:
 
 - the camera's path through video time (:func:`path_deviations`, :func:`off_path`): a phone moves
   smoothly around the plant, so each camera must lie where its video neighbours put it on their
@@ -12,45 +12,21 @@ stage records them all in ``poses.json`` and fails when one that matters fails. 
   the faces' planes (:func:`face_offsets`).
 
 Example:
-    >>> Check("registered", 118 / 120, 0.8, ">=").passed
-    True
+    >>> import numpy as np
+    >>> def looking_at_origin(a):  # a camera 50 cm out at angle a, its optical axis (z) through the origin
+    ...     M = np.eye(4); z = -np.array([np.cos(a), np.sin(a), 0.0]); x = np.cross(z, [0, 0, 1.0])
+    ...     M[:3, :3] = np.stack([x, np.cross(z, x), z], 1); M[:3, 3] = -50 * z; return M
+    >>> (np.round(orbit_centre([looking_at_origin(a) for a in (0.0, 2.0, 4.0)]), 6) + 0.0).tolist()
+    [0.0, 0.0, 0.0]
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 
 from plantsplat.log import get_logger
 
 log = get_logger(__name__)
-
-
-@dataclass
-class Check:
-    """One named check: ``value`` compared with ``threshold`` by ``op`` (``>=`` or ``<=``)."""
-
-    name: str
-    value: float | None
-    threshold: float
-    op: str = "<="
-    detail: str = ""
-
-    @property
-    def passed(self) -> bool:
-        if self.value is None or not np.isfinite(self.value):
-            return False
-        return self.value >= self.threshold if self.op == ">=" else self.value <= self.threshold
-
-    def as_dict(self) -> dict:
-        v = None if self.value is None else round(float(self.value), 4)
-        return {"name": self.name, "value": v, "threshold": self.threshold, "op": self.op, "passed": self.passed,
-                "detail": self.detail}
-
-    def line(self) -> str:
-        v = "n/a" if self.value is None else f"{self.value:.3g}"
-        return f"{self.name} {v} (needs {self.op} {self.threshold:g}){': ' + self.detail if self.detail else ''}"
 
 
 def _rotvec(R: np.ndarray) -> np.ndarray:
@@ -178,7 +154,8 @@ def off_path(c2w: dict[str, np.ndarray], names: list[str], times: list[float], l
     return dropped
 
 
-def face_offsets(points: np.ndarray, cube, band: float = 0.6, margin: float = 0.7, min_points: int = 10) -> dict[str, tuple[float, int]]:
+def face_offsets(points: np.ndarray, cube, band: float = 0.6, margin: float = 0.7,
+                 min_points: int = 10) -> dict[str, tuple[float, int]]:
     """Where SfM points near each face of the cube lie, along the face's normal (cube frame, cm).
 
     Points within ``band`` cm of a face's plane and at least ``margin`` cm inside its edges (a

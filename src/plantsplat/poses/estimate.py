@@ -15,30 +15,27 @@
    reprojection, its scale from both halves of the video, the SfM points on its faces. A model that
    fails a check is not written: the stage stops with a one-line error naming the check.
 
-Example:
-    >>> from plantsplat.poses import PosesConfig, estimate_poses
-    >>> report = estimate_poses(Workspace("ws/plant_01"), PosesConfig())   # doctest: +SKIP
-    >>> report["registered"], report["total"], report["scale_source"]      # doctest: +SKIP
-    (120, 120, 'aruco')
+Usage:
+    from plantsplat.poses import PosesConfig, estimate_poses
+    report = estimate_poses(Workspace("ws/plant_01"), PosesConfig())
+    report["registered"], report["total"], report["scale_source"]
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
+from plantsplat.checks import Check
 from plantsplat.cube import CubeSpec
-from plantsplat.errors import PlantsplatError, UsageError
+from plantsplat.errors import EXIT_POSES_FAILED, PlantsplatError, UsageError
 from plantsplat.io import read_json, write_json_atomic
 from plantsplat.log import get_logger
 from plantsplat.markers import Markers
-from plantsplat.poses.checks import Check
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
@@ -53,7 +50,8 @@ class PosesConfig:
     """Options of the poses stage."""
 
     matcher: Literal["auto", "retrieval", "exhaustive"] = "auto"
-    """Pairs to match: retrieval (video neighbours + visually similar frames), exhaustive (every pair), auto (exhaustive up to --exhaustive-max-frames frames, else retrieval)."""
+    """Pairs to match: retrieval (video neighbours + visually similar frames), exhaustive (every pair), auto
+    (exhaustive up to --exhaustive-max-frames frames, else retrieval)."""
     mapper: Literal["incremental", "global"] = "incremental"
     """COLMAP mapper: incremental (frames missing at first are matched again and mapping continues) or global."""
     camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "RADIAL"
@@ -83,7 +81,8 @@ class PosesConfig:
     min_registered: float = 0.8
     """Fail (exit code 3) when fewer than this share of the frames is registered and on the camera's path."""
     max_path_deviation: float = 0.3
-    """A camera off the path of its video neighbours by more than this share of the step to them (or of twice their turn) is left out."""
+    """A camera off the path of its video neighbours by more than this share of the step to them (or of twice
+    their turn) is left out."""
     max_scale_disagreement: float = 0.03
     """Fail when the cube's scale from the two halves of the video differs by more than this share."""
     max_face_offset_cm: float = 0.3
@@ -105,23 +104,11 @@ class PosesConfig:
         return CubeSpec(size=self.cube_size, marker_size=self.marker_size, dictionary=self.dictionary)
 
     def sfm_options(self):
-        from plantsplat.poses.sfm import SfmOptions
+        from plantsplat.poses.sfm import SfmConfig
 
-        return SfmOptions(camera_model=self.camera_model, max_features=self.max_features,
+        return SfmConfig(camera_model=self.camera_model, max_features=self.max_features,
                           first_octave=self.sift_first_octave, num_threads=self.num_threads, seed=self.seed,
                           verbose=self.colmap_log)
-
-
-def _fingerprint(cfg: PosesConfig, names: list[str], ws: Workspace) -> str:
-    d = {k: str(v) for k, v in asdict(cfg).items() if k not in ("colmap_log", "num_threads")}
-    d["version"] = POSES_VERSION
-    d["images"] = names
-    d["frames_json"] = hashlib.sha1(ws.frames_json.read_bytes()).hexdigest() if ws.frames_json.is_file() else None
-    for k in ("import_colmap", "import_transforms"):
-        p = getattr(cfg, k)
-        if p is not None:
-            d[k] = str(Path(p).resolve())
-    return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def outputs(ws: Workspace) -> list[Path]:
@@ -197,7 +184,12 @@ def _extend(rec, db: Path, vocab: Path | None, names: list[str], ws: Workspace, 
 
 def register(ws: Workspace, names: list[str], cfg: PosesConfig, report: dict):
     """SfM on whole frames (no masks, no cube); returns the model (model frame) with the most frames."""
-    from plantsplat.poses.sfm import extract_features, global_mapping, incremental, merge_models
+    from plantsplat.poses.sfm import (
+        extract_features,
+        global_mapping,
+        incremental,
+        merge_models,
+    )
 
     work = ws.root / WORK_DIR
     timings = report["timings"]
@@ -217,7 +209,7 @@ def register(ws: Workspace, names: list[str], cfg: PosesConfig, report: dict):
     if not models:
         raise PlantsplatError(
             f"{ws.images_dir}: COLMAP could not reconstruct any model from {len(names)} frames; the frames may be "
-            "too blurry, too few or too far apart (keep 6-12 degrees between neighbours)", exit_code=3)
+            "too blurry, too few or too far apart (keep 6-12 degrees between neighbours)", exit_code=EXIT_POSES_FAILED)
     report["models_found"] = [m.num_reg_images() for m in models]
     rec = models[0]
     if len(models) > 1 and rec.num_reg_images() < len(names):
@@ -372,7 +364,11 @@ def _describe(report: dict, rec, cal, cfg: PosesConfig, names: list[str]) -> Non
 
 
 def _write_outputs(ws: Workspace, rec, cal, report: dict, cfg: PosesConfig) -> None:
-    from plantsplat.poses.interop import write_colmap, write_points_ply, write_transforms
+    from plantsplat.poses.interop import (
+        write_colmap,
+        write_points_ply,
+        write_transforms,
+    )
     from plantsplat.poses.sfm import colmap_logging
 
     with colmap_logging(cfg.colmap_log):
@@ -384,17 +380,6 @@ def _write_outputs(ws: Workspace, rec, cal, report: dict, cfg: PosesConfig) -> N
     if cal is not None:
         extra["plantsplat"]["cube_from_model"] = cal.matrix().tolist()
     write_transforms(rec, ws.transforms_json, mask_prefix=ws.masks_dir.name, extra=extra)
-
-
-def _up_to_date(ws: Workspace, fp: str) -> dict | None:
-    """The previous report when it is ok, for the same frames and options, with every output in place."""
-    if not (ws.poses_json.is_file() and all(p.exists() for p in outputs(ws))):
-        return None
-    try:
-        old = read_json(ws.poses_json)
-    except PlantsplatError:
-        return None
-    return old if old.get("fingerprint") == fp and old.get("status") == "ok" else None
 
 
 def _markers(ws: Workspace, names: list[str], cube: CubeSpec, cfg: PosesConfig, report: dict) -> Markers:
@@ -424,15 +409,15 @@ def _fail(ws: Workspace, rec, report: dict, failed: list[Check], cfg: PosesConfi
     return PlantsplatError(
         f"{ws.images_dir}: the camera model fails its checks ({what}); nothing was written as poses (the model is kept "
         f"in {rejected} for inspection). Re-take the video more slowly with more overlap, or try --matcher exhaustive",
-        exit_code=3)
+        exit_code=EXIT_POSES_FAILED)
 
 
-def estimate_poses(ws: Workspace | str | Path, cfg: PosesConfig | None = None, force: bool = False) -> dict:
+def estimate_poses(ws: Workspace | str | Path, cfg: PosesConfig | None = None) -> dict:
     """Run the poses stage on workspace ``ws``; returns the ``poses.json`` report.
 
-    Skips the work when a report that passed its checks exists for the same images and options, with
-    every output (pass ``force=True`` to redo). Raises :class:`PlantsplatError` on bad input (too
-    few frames, broken import) and, with exit code 3, when the model fails its checks.
+    Raises :class:`PlantsplatError` on bad input (too few frames, broken import) and, with exit code 3,
+    when the model fails its checks. Whether the stage needs to run at all is decided by
+    :func:`plantsplat.pipeline.poses_stage`.
     """
     from plantsplat.poses.sfm import n_threads_env
 
@@ -445,15 +430,10 @@ def estimate_poses(ws: Workspace | str | Path, cfg: PosesConfig | None = None, f
     if len(names) < MIN_FRAMES:
         raise PlantsplatError(f"{ws.images_dir}: only {len(names)} frame(s); structure from motion needs at least "
                               f"{MIN_FRAMES} (the paper uses 100-150); run `plantsplat frames` with more frames")
-    fp = _fingerprint(cfg, names, ws)
-    old = None if force else _up_to_date(ws, fp)
-    if old is not None:
-        log.info("%s: poses already estimated (%d/%d frames); pass --force to redo", ws.root, old["registered"], old["total"])
-        return old
     n_threads_env(cfg.num_threads)
     cube = cfg.cube()
     t_start = time.perf_counter()
-    report: dict = {"version": POSES_VERSION, "fingerprint": fp, "total": len(names), "timings": {}, "events": [],
+    report: dict = {"version": POSES_VERSION, "total": len(names), "timings": {}, "events": [],
                     "camera_model": cfg.camera_model, "source": "sfm"}
     markers = _markers(ws, names, cube, cfg, report)
     sfm = cfg.import_colmap is None and cfg.import_transforms is None

@@ -3,8 +3,8 @@
 Images are matched by name, or through ``frames.json`` by the name they had in the folder the frames
 came from (a model made on the original photos imports onto the extracted frames).
 
-Example:
-    >>> rec = rename_images(read_colmap(Path("my_model/sparse/0")), {"IMG_0001.jpg": "frame_00000.png"})  # doctest: +SKIP
+Usage:
+    rec = rename_images(read_colmap(Path("my_model/sparse/0")), {"IMG_0001.jpg": "frame_00000.png"})
 """
 
 from __future__ import annotations

@@ -8,22 +8,19 @@
   OpenGL axes (x right, y up, z backward). COLMAP uses OpenCV axes (y down, z forward): the two
   differ by ``diag(1, -1, -1)`` on the camera side.
 
-Example:
-    >>> rec = read_colmap("my_model/sparse/0")                       # doctest: +SKIP
-    >>> write_transforms(rec, "ws/transforms.json", mask_prefix="masks")  # doctest: +SKIP
+Usage:
+    rec = read_colmap("my_model/sparse/0")
+    write_transforms(rec, "ws/transforms.json", mask_prefix="masks")
 """
 
 from __future__ import annotations
 
-import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from plantsplat.errors import PlantsplatError
-from plantsplat.io import atomic_path, read_json, write_json_atomic
+from plantsplat.io import read_json, staged_dir, write_json_atomic
 
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -74,33 +71,13 @@ def registered_images(rec) -> list:
     return sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
 
 
-def _swap_dir(tmp: Path, dst: Path) -> None:
-    """Replace folder ``dst`` by ``tmp`` (old contents removed only once the new folder is in place)."""
-    old = None
-    if dst.exists():
-        old = dst.with_name(f".{dst.name}.old")
-        if old.exists():
-            shutil.rmtree(old)
-        os.replace(dst, old)
-    os.replace(tmp, dst)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
-
-
 def write_colmap(rec, out_dir: Path, text: bool = False) -> None:
     """Write a COLMAP model (binary, or text with ``text=True``) to ``out_dir`` atomically."""
-    out_dir = Path(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
-    try:
+    with staged_dir(out_dir) as tmp:
         if text:
             rec.write_text(str(tmp))
         else:
             rec.write_binary(str(tmp))
-        _swap_dir(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 def read_colmap(path: Path):
@@ -244,15 +221,10 @@ def read_transforms(path: Path, image_names: list[str] | None = None):
 
 def write_points_ply(rec, path: Path) -> int:
     """Write the model's 3D points as a binary PLY (x, y, z float, red, green, blue uchar); returns the count."""
-    from plyfile import PlyData, PlyElement
+    from plantsplat.ply import write_point_cloud
 
     pts = list(rec.points3D.values())
-    arr = np.zeros(len(pts), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    if pts:
-        xyz = np.array([p.xyz for p in pts])  # [N, 3]
-        rgb = np.array([p.color for p in pts])  # [N, 3]
-        arr["x"], arr["y"], arr["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-        arr["red"], arr["green"], arr["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
-    with atomic_path(path) as tmp:
-        PlyData([PlyElement.describe(arr, "vertex")], text=False).write(str(tmp))
+    xyz = np.array([p.xyz for p in pts]).reshape(-1, 3)  # [N, 3]
+    rgb = np.array([p.color for p in pts]).reshape(-1, 3)  # [N, 3]
+    write_point_cloud(path, xyz, rgb)
     return len(pts)

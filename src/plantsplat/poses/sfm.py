@@ -5,11 +5,11 @@ lives on) and neither masks nor the cube are needed: which frames to match is ch
 :mod:`plantsplat.poses.pairs` (video neighbours and visually similar frames), then COLMAP's
 incremental mapper registers them.
 
-Example:
-    >>> opts = SfmOptions()
-    >>> db = extract_features(Path("ws/images"), names, Path("ws/.plantsplat/colmap"), opts)  # doctest: +SKIP
-    >>> match_pairs(db, Path("ws/.plantsplat/colmap"), [("a.png", "b.png")], opts, "video")    # doctest: +SKIP
-    >>> models = incremental(db, Path("ws/images"), Path("ws/.plantsplat/colmap/inc"), opts)   # doctest: +SKIP
+Usage:
+    opts = SfmConfig()
+    db = extract_features(Path("ws/images"), names, Path("ws/.plantsplat/colmap"), opts)
+    match_pairs(db, Path("ws/.plantsplat/colmap"), [("a.png", "b.png")], opts, "video")
+    models = incremental(db, Path("ws/images"), Path("ws/.plantsplat/colmap/inc"), opts)
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV
 
 
 @dataclass
-class SfmOptions:
+class SfmConfig:
     """COLMAP settings of one SfM run (filled from :class:`plantsplat.poses.PosesConfig`)."""
 
     camera_model: str = "RADIAL"
@@ -76,7 +76,7 @@ def colmap_logging(verbose: bool):
         pycolmap.logging.verbose_level = old_v
 
 
-def extract_features(image_dir: Path, names: list[str], work_dir: Path, opts: SfmOptions) -> Path:
+def extract_features(image_dir: Path, names: list[str], work_dir: Path, opts: SfmConfig) -> Path:
     """SIFT features of ``names`` (one shared camera) into ``work_dir/database.db``, rebuilt from scratch."""
     import pycolmap
 
@@ -101,7 +101,7 @@ def extract_features(image_dir: Path, names: list[str], work_dir: Path, opts: Sf
     return db
 
 
-def _matching_options(opts: SfmOptions):
+def _matching_options(opts: SfmConfig):
     """pycolmap's matching and two-view verification options for ``opts`` (threads, seeded RANSAC)."""
     import pycolmap
 
@@ -114,7 +114,7 @@ def _matching_options(opts: SfmOptions):
     return mopts, verif
 
 
-def match_pairs(db: Path, work_dir: Path, pairs: list[tuple[str, str]], opts: SfmOptions, tag: str) -> None:
+def match_pairs(db: Path, work_dir: Path, pairs: list[tuple[str, str]], opts: SfmConfig, tag: str) -> None:
     """Match and verify image ``pairs`` (names) into ``db``; pairs matched before are skipped by COLMAP."""
     import pycolmap
 
@@ -130,7 +130,7 @@ def match_pairs(db: Path, work_dir: Path, pairs: list[tuple[str, str]], opts: Sf
                                    device=pycolmap.Device.cpu)
 
 
-def match_exhaustive(db: Path, opts: SfmOptions) -> None:
+def match_exhaustive(db: Path, opts: SfmConfig) -> None:
     """Match and verify every pair of frames in ``db``."""
     import pycolmap
 
@@ -145,7 +145,7 @@ def _fresh(out_dir: Path) -> None:
     out_dir.mkdir(parents=True)
 
 
-def incremental(db: Path, image_dir: Path, out_dir: Path, opts: SfmOptions, input_path: Path | None = None) -> list:
+def incremental(db: Path, image_dir: Path, out_dir: Path, opts: SfmConfig, input_path: Path | None = None) -> list:
     """COLMAP incremental mapping (continuing the model at ``input_path`` if given); models found, largest first."""
     import pycolmap
 
@@ -162,7 +162,7 @@ def incremental(db: Path, image_dir: Path, out_dir: Path, opts: SfmOptions, inpu
     return sorted(models.values(), key=lambda r: -r.num_reg_images())
 
 
-def global_mapping(db: Path, image_dir: Path, out_dir: Path, opts: SfmOptions) -> list:
+def global_mapping(db: Path, image_dir: Path, out_dir: Path, opts: SfmConfig) -> list:
     """GLOMAP-style global mapping (rotation averaging, global positioning, bundle adjustment); largest first."""
     import pycolmap
 
@@ -191,7 +191,7 @@ def n_threads_env(n: int) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", str(n))
 
 
-def merge_models(models: list, db: Path, image_dir: Path, work_dir: Path, opts: SfmOptions):
+def merge_models(models: list, db: Path, image_dir: Path, work_dir: Path, opts: SfmConfig):
     """One model from the pieces incremental mapping left: each piece that shares frames with the first is
     aligned onto it by the reprojections of their common points (COLMAP's model alignment), its other frames
     join, then every match is triangulated again and the whole is bundle-adjusted. Returns the merged model,
@@ -220,7 +220,7 @@ def merge_models(models: list, db: Path, image_dir: Path, work_dir: Path, opts: 
     return retriangulate(base, poses, db, image_dir, work_dir, opts)
 
 
-def retriangulate(like, poses: dict, db: Path, image_dir: Path, work_dir: Path, opts: SfmOptions):
+def retriangulate(like, poses: dict, db: Path, image_dir: Path, work_dir: Path, opts: SfmConfig):
     """A model of the frames in ``poses`` (name -> cam_from_world) with the camera of ``like``: every match in
     ``db`` triangulated, then a bundle adjustment of poses, points and intrinsics."""
     import numpy as np

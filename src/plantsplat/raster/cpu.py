@@ -40,15 +40,15 @@ import math
 import numba
 import numpy as np
 import torch
-from numba import njit, prange
 from llvmlite import ir as _ir
+from numba import njit, prange
 from numba import types as _nt
 from numba.core import cgutils as _cg
 from numba.extending import intrinsic
-
-# OpenMP first: the TBB that some wheels bring is too old for numba and would only print a warning
-numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 from torch import Tensor
+
+import plantsplat.raster.numba_config  # noqa: F401  (numba's threading layer)
+
 
 @intrinsic
 def _prefetch(typingctx, arr, idx):  # pragma: no cover - numba

@@ -12,12 +12,10 @@ import math
 
 import numpy as np
 import torch
-import numba
 from numba import njit, prange
-
-# OpenMP first: the TBB that some wheels bring is too old for numba and would only print a warning
-numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 from torch import Tensor
+
+import plantsplat.raster.numba_config  # noqa: F401  (numba's threading layer)
 
 _F32 = np.float32
 _FM = {"reassoc", "contract", "arcp", "nsz", "afn"}

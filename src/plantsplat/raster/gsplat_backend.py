@@ -27,8 +27,8 @@ def rasterize_gsplat(
     ``means2d`` of the result is a [N, 2] tensor whose ``.grad`` is filled, after ``backward()``,
     from gsplat's [1, N, 2] projected means (gsplat needs a camera batch dimension).
 
-    Example:
-        >>> out = rasterize_gsplat(means.cuda(), quats.cuda(), ...)  # doctest: +SKIP
+    Usage:
+        out = rasterize_gsplat(means.cuda(), quats.cuda(), ...)
     """
     from gsplat import rasterization
 

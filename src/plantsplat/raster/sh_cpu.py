@@ -19,13 +19,12 @@ Example:
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 import torch
 from numba import njit, prange
-
-numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 from torch import Tensor
+
+import plantsplat.raster.numba_config  # noqa: F401  (numba's threading layer)
 
 from .projection import SH_C0, SH_C1, SH_C2, SH_C3
 

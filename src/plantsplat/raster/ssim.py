@@ -33,13 +33,12 @@ Example:
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 import torch
 from numba import njit, prange
-
-numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 from torch import Tensor
+
+import plantsplat.raster.numba_config  # noqa: F401  (numba's threading layer)
 
 _F32 = np.float32
 _FM = {"reassoc", "contract", "arcp", "nsz", "afn"}

@@ -6,13 +6,13 @@
 - :func:`write_batch_report`: traits of every plant, accuracy table, interactive scatter plots (plotly),
   links to each plant's report.
 
-Example:
-    >>> from plantsplat.report import write_report
-    >>> write_report("ws/plant_01")  # doctest: +SKIP
-    PosixPath('ws/plant_01/report.html')
+Usage:
+    from plantsplat.report import write_report
+    write_report("ws/plant_01")
 """
 
 from plantsplat.report.batch import write_batch_report
-from plantsplat.report.plant import ReportOptions, build_report_html, write_report
+from plantsplat.report.config import ReportConfig
+from plantsplat.report.plant import build_report_html, write_report
 
-__all__ = ["ReportOptions", "build_report_html", "write_batch_report", "write_report"]
+__all__ = ["ReportConfig", "build_report_html", "write_batch_report", "write_report"]

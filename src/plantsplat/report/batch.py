@@ -3,11 +3,10 @@
 One self-contained ``report.html`` (plotly.js inlined from the installed ``plotly`` package, no CDN)
 with links to each plant's own report.
 
-Example:
-    >>> rows = [{"plant_id": "p1", "status": "ok", "height_cm": 20.1}, {"plant_id": "p2", "status": "ok", "height_cm": 25.3}]
-    >>> truth = {"p1": {"height_cm": 20.0}, "p2": {"height_cm": 26.0}}
-    >>> write_batch_report("out", rows, None, {"p1": "out/plants/p1/report.html"}, truth=truth)  # doctest: +SKIP
-    PosixPath('out/report.html')
+Usage:
+    rows = [{"plant_id": "p1", "status": "ok", "height_cm": 20.1}, {"plant_id": "p2", "status": "ok", "height_cm": 25.3}]
+    truth = {"p1": {"height_cm": 20.0}, "p2": {"height_cm": 26.0}}
+    write_batch_report("out", rows, None, {"p1": "out/plants/p1/report.html"}, truth=truth)
 """
 
 from __future__ import annotations
@@ -23,7 +22,7 @@ from plantsplat.errors import PlantsplatError
 from plantsplat.io import write_text_atomic
 from plantsplat.log import get_logger
 from plantsplat.report import html as H
-from plantsplat.traitdefs import TRAIT_KEYS
+from plantsplat.traitdefs import TRAIT_KEYS, TRAIT_UNITS
 
 log = get_logger(__name__)
 
@@ -31,8 +30,6 @@ ID_KEYS = ("plant_id", "id", "plant", "name")
 METRIC_COLUMNS = [("n", "n"), ("r2", "R²"), ("rmse", "RMSE"), ("mape", "MAPE (%)"), ("mae", "MAE"),
                   ("acc", "Acc (%)"), ("bias", "bias"), ("slope", "slope"), ("intercept", "intercept"),
                   ("missing", "missing")]
-UNITS = {"height_cm": "cm", "width1_cm": "cm", "width2_cm": "cm", "canopy_volume_cm3": "cm³",
-         "canopy_area_cm2": "cm²", "fruit_count": ""}
 
 
 def _plant_id(row: Mapping[str, Any], i: int) -> str:
@@ -98,7 +95,7 @@ def _scatter_html(rows: Sequence[Mapping[str, Any]], truth: Mapping[str, Mapping
         ids, y, yh = zip(*pts)
         lo, hi = min(min(y), min(yh)), max(max(y), max(yh))
         pad = 0.05 * (hi - lo or 1.0)
-        unit = UNITS.get(t, "")
+        unit = TRAIT_UNITS.get(t, "")
         fig = go.Figure()
         fig.add_trace(go.Scatter(x=[lo - pad, hi + pad], y=[lo - pad, hi + pad], mode="lines", name="1:1",
                                  line={"dash": "dash", "color": "#888"}, hoverinfo="skip"))
@@ -138,9 +135,8 @@ def write_batch_report(
         truth: ``{plant_id: {trait: hand measurement}}`` for the scatter plots (also read from
             ``accuracy["truth"]`` when given there).
 
-    Example:
-        >>> write_batch_report("runs/batch", rows, acc, {"p1": "runs/batch/plants/p1/report.html"})  # doctest: +SKIP
-        PosixPath('runs/batch/report.html')
+    Usage:
+        write_batch_report("runs/batch", rows, acc, {"p1": "runs/batch/plants/p1/report.html"})
     """
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
@@ -214,8 +210,5 @@ def write_batch_report(
     text = H.page("plantsplat batch report", header + "<main>" + "".join(sections) + "</main>", head_extra)
     path = out_dir / "report.html"
     write_text_atomic(path, text)
-    from plantsplat.report.plant import _make_readable
-
-    _make_readable(path)
     log.info("batch report: %s (%.1f MB)", path, len(text.encode()) / 1e6)
     return path

@@ -3,12 +3,11 @@
 Drives the system's Chromium (Debian package ``chromium``) through Playwright's Python API; no browser
 download. WebGL runs on the CPU through SwiftShader.
 
-Example:
-    >>> from plantsplat.report.browser import find_chromium, open_report
-    >>> if find_chromium():  # doctest: +SKIP
-    ...     res = open_report("ws/report.html", screenshot="shot.png")
-    ...     res.viewer_state, res.console_errors
-    ('ready', [])
+Usage:
+    from plantsplat.report.browser import find_chromium, open_report
+    if find_chromium():
+        res = open_report("ws/report.html", screenshot="shot.png")
+        res.viewer_state, res.console_errors
 """
 
 from __future__ import annotations
@@ -79,10 +78,10 @@ def _decode_png(data: bytes) -> np.ndarray:
 class ReportBrowser:
     """One headless Chromium for several reports (launching takes about a second).
 
-    Example:
-        >>> with ReportBrowser() as b:  # doctest: +SKIP
-        ...     r1 = b.open("a/report.html")
-        ...     r2 = b.open("b/report.html", screenshot="b.png")
+    Usage:
+        with ReportBrowser() as b:
+            r1 = b.open("a/report.html")
+            r2 = b.open("b/report.html", screenshot="b.png")
     """
 
     def __init__(self, viewport: tuple[int, int] = (1280, 900), extra_args: tuple[str, ...] = ()):

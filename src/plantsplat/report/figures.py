@@ -1,9 +1,8 @@
 """Figures for the plant report: frame contact sheet with mask overlays, camera path, render pairs.
 
-Example:
-    >>> sheet, shown, with_mask = contact_sheet(Workspace("ws/plant_01"), max_frames=24)  # doctest: +SKIP
-    >>> sheet.shape[2], shown  # doctest: +SKIP
-    (3, 24)
+Usage:
+    sheet, shown, with_mask = contact_sheet(Workspace("ws/plant_01"), max_frames=24)
+    sheet.shape[2], shown
 """
 
 from __future__ import annotations
@@ -15,7 +14,6 @@ from pathlib import Path
 import numpy as np
 
 from plantsplat.errors import PlantsplatError
-from plantsplat.io import read_image
 from plantsplat.workspace import Workspace
 
 
@@ -27,59 +25,23 @@ def pick_evenly(items: list, k: int) -> list:
     return [items[i] for i in idx]
 
 
-def overlay_mask(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Darken and desaturate the background (mask == 0) and outline the mask in green.
-
-    ``rgb`` [H, W, 3] uint8, ``mask`` [H, W] uint8 (255 = plant or cube); returns [H, W, 3] uint8.
-    """
-    import cv2
-
-    if mask.shape[:2] != rgb.shape[:2]:
-        mask = cv2.resize(mask, (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_NEAREST)
-    fg = mask > 127  # [H, W]
-    out = rgb.astype(np.float32)
-    grey = out.mean(axis=2, keepdims=True)
-    out = np.where(fg[..., None], out, 0.35 * grey + 0.1 * out)
-    out = np.clip(out, 0, 255).astype(np.uint8)
-    contours, _ = cv2.findContours(fg.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-    thick = max(1, round(rgb.shape[1] / 200))
-    cv2.drawContours(out, contours, -1, (60, 255, 90), thick)
-    return out
-
-
-def contact_sheet(ws: Workspace, max_frames: int = 24, thumb_width: int = 240, columns: int = 6) -> tuple[np.ndarray, int, int]:
-    """Grid of evenly spread frames, with mask overlays where ``masks/`` has the frame.
+def contact_sheet(ws: Workspace, max_frames: int = 24, tile_height: int = 320, columns: int = 6
+                  ) -> tuple[np.ndarray, int, int]:
+    """Grid of evenly spread frames, with the mask overlaid where ``masks/`` has the frame
+    (:func:`plantsplat.segment.preview.contact_sheet`).
 
     Returns ``(sheet [H, W, 3] uint8, frames shown, frames with a mask)``.
     """
-    import cv2
+    from plantsplat.segment.preview import contact_sheet as sheet_of
 
     names = ws.image_names()
     if not names:
         raise PlantsplatError(f"{ws.images_dir}: no frames")
     chosen = pick_evenly(names, max_frames)
-    thumbs, n_masked = [], 0
-    for name in chosen:
-        img = read_image(ws.images_dir / name)
-        mask_path = ws.masks_dir / (Path(name).stem + ".png")
-        if mask_path.is_file():
-            img = overlay_mask(img, read_image(mask_path, "gray"))
-            n_masked += 1
-        h = max(1, round(img.shape[0] * thumb_width / img.shape[1]))
-        t = cv2.resize(img, (thumb_width, h), interpolation=cv2.INTER_AREA)
-        cv2.putText(t, Path(name).stem.replace("frame_", "#"), (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
-                    (255, 255, 255), 1, cv2.LINE_AA)
-        thumbs.append(t)
-    th = max(t.shape[0] for t in thumbs)
-    cols = min(columns, len(thumbs))
-    rows = (len(thumbs) + cols - 1) // cols
-    pad = 4
-    sheet = np.full((rows * (th + pad) + pad, cols * (thumb_width + pad) + pad, 3), 255, np.uint8)
-    for i, t in enumerate(thumbs):
-        r, c = divmod(i, cols)
-        y, x = pad + r * (th + pad), pad + c * (thumb_width + pad)
-        sheet[y : y + t.shape[0], x : x + t.shape[1]] = t
-    return sheet, len(thumbs), n_masked
+    masks = [ws.masks_dir / n if (ws.masks_dir / n).is_file() else None for n in chosen]
+    sheet = sheet_of([ws.images_dir / n for n in chosen], masks, labels=[Path(n).stem.replace("frame_", "#") for n in chosen],
+                     max_tiles=len(chosen), tile_height=tile_height, columns=columns)
+    return sheet, len(chosen), sum(m is not None for m in masks)
 
 
 def read_cameras(path: Path) -> tuple[np.ndarray, list[str]]:
@@ -166,8 +128,3 @@ def render_pairs(renders_dir: Path) -> list[tuple[str, Path, Path]]:
     return pairs
 
 
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    """PSNR in dB between two uint8 images of the same shape (OpenCV)."""
-    import cv2
-
-    return float(cv2.PSNR(a, b))

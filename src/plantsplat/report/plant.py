@@ -6,10 +6,9 @@ to their ground-truth frames; image metrics; a contact sheet of frames with mask
 path; run times per stage. A part whose input is missing or unreadable is named in its place with
 the command that produces it; it never stops the report.
 
-Example:
-    >>> from plantsplat.report import write_report
-    >>> write_report("ws/plant_01")  # doctest: +SKIP
-    PosixPath('ws/plant_01/report.html')
+Usage:
+    from plantsplat.report import write_report
+    write_report("ws/plant_01")
 """
 
 from __future__ import annotations
@@ -27,35 +26,21 @@ from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_image, read_json, write_text_atomic
 from plantsplat.log import get_logger, progress
 from plantsplat.report import html as H
-from plantsplat.report.figures import camera_path_png, contact_sheet, pick_evenly, psnr, read_cameras, render_pairs
+from plantsplat.report.config import ReportConfig
+from plantsplat.report.figures import (
+    camera_path_png,
+    contact_sheet,
+    pick_evenly,
+    read_cameras,
+    render_pairs,
+)
 from plantsplat.report.splat import encode_splat, read_points_ply, read_splat_ply
-from plantsplat.traitdefs import TRAIT_KEYS
+from plantsplat.traitdefs import TRAIT_KEYS, TRAIT_LABELS, TRAIT_UNITS
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
 
-TRAIT_LABELS = {
-    "height_cm": "Height (cm)", "width1_cm": "Width 1, major axis (cm)", "width2_cm": "Width 2, minor axis (cm)",
-    "canopy_volume_cm3": "Canopy volume, convex hull (cm³)", "canopy_area_cm2": "Projected canopy area (cm²)",
-    "fruit_count": "Fruit count",
-}
 BACKGROUND = "#202124"
-
-
-@dataclass
-class ReportOptions:
-    """What goes into the report and how big it may get."""
-
-    max_gaussians: int = 250_000
-    """Keep at most this many Gaussians (the most visible) in the 3D viewer (32 bytes each)."""
-    max_points: int = 100_000
-    """Keep at most this many points of export/points.ply in the point-cloud view (15 bytes each)."""
-    max_frames: int = 24
-    """Frames in the contact sheet (spread evenly over the capture)."""
-    max_render_pairs: int = 8
-    """Test views shown as render / ground-truth pairs."""
-    viewer: bool = True
-    """Include the interactive 3D viewer (adds about 3.2 MB of JavaScript)."""
 
 
 @dataclass
@@ -92,7 +77,8 @@ def _traits_section(ws: Workspace, parts: _Parts) -> str:
         t = read_json(ws.traits_json)
         if not isinstance(t, dict):
             raise PlantsplatError(f"{ws.traits_json}: expected a JSON object; re-run `plantsplat traits`")
-        main = {TRAIT_LABELS[k]: t[k] for k in TRAIT_KEYS if k in t}
+        main = {TRAIT_LABELS[k].capitalize() + (f" ({TRAIT_UNITS[k]})" if TRAIT_UNITS[k] else ""): t[k]
+                for k in TRAIT_KEYS if k in t}
         for key, label in (("quality", "Measurement quality"), ("scale_source", "Scale from")):
             if t.get(key) is not None:
                 main[label] = t[key]
@@ -130,7 +116,7 @@ def _scene_frame(points: np.ndarray) -> tuple[list[float], float]:
     return [float(x) for x in c], max(r, 1e-3)
 
 
-def _viewer_section(ws: Workspace, parts: _Parts, opts: ReportOptions) -> str:
+def _viewer_section(ws: Workspace, parts: _Parts, opts: ReportConfig) -> str:
     if not opts.viewer:
         return '<p class="muted">3D viewer left out (--no-viewer).</p>'
     blocks, notes, stats = [], [], []
@@ -193,21 +179,21 @@ def _viewer_section(ws: Workspace, parts: _Parts, opts: ReportOptions) -> str:
     )
 
 
-def _renders_section(ws: Workspace, parts: _Parts, opts: ReportOptions) -> str:
+def _renders_section(ws: Workspace, parts: _Parts, opts: ReportConfig) -> str:
     import cv2
 
     rdir = ws.train_dir / "renders"
     pairs = render_pairs(rdir) if rdir.is_dir() else []
     if not pairs:
         return parts.miss("test-view renders (train/renders/<name>_render.png with <name>_gt.png)",
-                          f"written when test views are evaluated: `plantsplat evaluate {ws.root}`")
+                          f"written when training evaluates the test views: `plantsplat train {ws.root}`")
     shown = pick_evenly(pairs, opts.max_render_pairs)
     cells = []
     for name, rp, gp in shown:
         r, gt = read_image(rp), read_image(gp)
         if r.shape != gt.shape:
             r = cv2.resize(r, (gt.shape[1], gt.shape[0]), interpolation=cv2.INTER_AREA)
-        value = psnr(r, gt)
+        value = float(cv2.PSNR(r, gt))
         w = min(360, gt.shape[1])
         size = (w, max(1, round(gt.shape[0] * w / gt.shape[1])))
         imgs = [cv2.resize(x, size, interpolation=cv2.INTER_AREA) for x in (gt, r)]
@@ -223,15 +209,15 @@ def _renders_section(ws: Workspace, parts: _Parts, opts: ReportOptions) -> str:
 
 def _metrics_section(ws: Workspace, parts: _Parts) -> str:
     if not ws.metrics_json.is_file():
-        return parts.miss("image metrics (metrics.json)", _cmd("evaluate", ws))
+        return parts.miss("image metrics (metrics.json)", _cmd("train", ws))
     m = read_json(ws.metrics_json)
     if not isinstance(m, dict):
-        raise PlantsplatError(f"{ws.metrics_json}: expected a JSON object; re-run `plantsplat evaluate`")
+        raise PlantsplatError(f"{ws.metrics_json}: expected a JSON object; re-run `plantsplat train {ws.root} --force`")
     parts.have("image metrics")
     return H.generic_tables(m)
 
 
-def _frames_section(ws: Workspace, parts: _Parts, opts: ReportOptions) -> str:
+def _frames_section(ws: Workspace, parts: _Parts, opts: ReportConfig) -> str:
     names = ws.image_names()
     body = []
     if names:
@@ -246,10 +232,10 @@ def _frames_section(ws: Workspace, parts: _Parts, opts: ReportOptions) -> str:
         else:
             parts.have("masks")
     elif (ws.root / "masks_preview.png").is_file():
-        body.append(parts.miss("frames (images/)", _cmd("frames", ws)))
+        body.append(parts.miss("frames (images/)", f"run `plantsplat frames VIDEO --out {ws.root}`"))
         body.append(H.img_tag((ws.root / "masks_preview.png").read_bytes(), "image/png", "masks preview", cls="figure"))
     else:
-        body.append(parts.miss("frames (images/)", _cmd("frames", ws)))
+        body.append(parts.miss("frames (images/)", f"run `plantsplat frames VIDEO --out {ws.root}`"))
     if ws.frames_json.is_file():
         fj = read_json(ws.frames_json)
         if isinstance(fj, dict):
@@ -294,11 +280,11 @@ def _fmt_seconds(s: float) -> str:
 
 def _runtimes_section(ws: Workspace, parts: _Parts) -> str:
     if not ws.run_json.is_file():
-        return parts.miss("run times (run.json)", f"written by `plantsplat run {ws.root}`")
+        return parts.miss("run times (run.json)", f"written by `plantsplat run VIDEO --out {ws.root}`")
     r = read_json(ws.run_json)
     stages = r.get("stages") if isinstance(r, dict) else None
     if not isinstance(stages, dict) or not stages:
-        raise PlantsplatError(f"{ws.run_json}: no 'stages' with per-stage times; re-run `plantsplat run`")
+        raise PlantsplatError(f"{ws.run_json}: no 'stages' with per-stage times; re-run `plantsplat run VIDEO --out {ws.root}`")
     secs = {k: float(v.get("seconds", 0) or 0) for k, v in stages.items() if isinstance(v, dict)}
     total = sum(secs.values()) or 1.0
     rows = []
@@ -307,7 +293,8 @@ def _runtimes_section(ws: Workspace, parts: _Parts) -> str:
             continue
         s = secs[k]
         status = ("failed: " + str(v["failed"])) if v.get("failed") else ("skipped (reused)" if v.get("skipped") else "ran")
-        rows.append({"stage": k, "status": status, "time": _fmt_seconds(s), "share": f'<span class="bar" style="width:{int(200 * s / total)}px">'
+        rows.append({"stage": k, "status": status, "time": _fmt_seconds(s),
+                     "share": f'<span class="bar" style="width:{int(200 * s / total)}px">'
                      f"</span> {100 * s / total:.0f}%", "peak memory (MB)": v.get("peak_rss_mb"),
                      **{kk: vv for kk, vv in v.items() if kk not in {"seconds", "peak_rss_mb"} and H.is_number(vv)}})
     cols = ["stage", "status", "time", "share", "peak memory (MB)"]
@@ -321,11 +308,11 @@ def _runtimes_section(ws: Workspace, parts: _Parts) -> str:
     return body
 
 
-def build_report_html(ws: Workspace, opts: ReportOptions | None = None) -> tuple[str, _Parts]:
+def build_report_html(ws: Workspace, opts: ReportConfig | None = None) -> tuple[str, _Parts]:
     """The report for ``ws`` as an HTML string, with the list of present and missing parts."""
     from plantsplat import __version__ as version
 
-    opts = opts or ReportOptions()
+    opts = opts or ReportConfig()
     parts = _Parts()
     steps = [
         ("traits", "Traits", lambda: _traits_section(ws, parts)),
@@ -349,29 +336,33 @@ def build_report_html(ws: Workspace, opts: ReportOptions | None = None) -> tuple
     header = (f"<header><h1>plantsplat report: {H.esc(ws.root.resolve().name)}</h1>"
               f'<div class="sub">{H.esc(str(ws.root.resolve()))} · generated {H.esc(when)} · plantsplat {H.esc(version)}'
               f" · {len(parts.missing)} part(s) missing</div></header>")
-    body = header + nav + "<main>" + summary + "".join(sections) + "</main>"
+    body = header + nav + "<main>" + _failed_banner(ws) + summary + "".join(sections) + "</main>"
     return H.page(f"plantsplat report: {ws.root.resolve().name}", body), parts
 
 
-def _make_readable(path: Path) -> None:
-    """Atomic writes create files readable by the owner only; a report is meant to be shared."""
-    umask = os.umask(0)
-    os.umask(umask)
+def _failed_banner(ws: Workspace) -> str:
+    """A failed result, said first: before any number of it is read."""
+    if not ws.traits_json.is_file():
+        return ""
     try:
-        os.chmod(path, 0o666 & ~umask)
-    except OSError:
-        pass
+        t = read_json(ws.traits_json)
+    except PlantsplatError:
+        return ""
+    if not isinstance(t, dict) or t.get("quality") != "failed":
+        return ""
+    items = "".join(f"<li>{H.esc(r)}</li>" for r in t.get("quality_reasons", [])[:6])
+    return (f'<div class="missing failed"><b>RESULT FAILED: these traits must not be used.</b> '
+            f"The checks that failed:<ul>{items}</ul></div>")
 
 
 def write_report(workspace: Workspace | str | os.PathLike, out: str | os.PathLike | None = None,
-                 opts: ReportOptions | None = None) -> Path:
+                 opts: ReportConfig | None = None) -> Path:
     """Write the plant report for ``workspace`` to ``out`` (default ``WS/report.html``), atomically.
 
     Missing or unreadable parts are named in the report; only a missing workspace folder is an error.
 
-    Example:
-        >>> write_report("ws/plant_01")  # doctest: +SKIP
-        PosixPath('ws/plant_01/report.html')
+    Usage:
+        write_report("ws/plant_01")
     """
     ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
     if not ws.root.is_dir():
@@ -383,7 +374,6 @@ def write_report(workspace: Workspace | str | os.PathLike, out: str | os.PathLik
     t0 = time.perf_counter()
     text, parts = build_report_html(ws, opts)
     write_text_atomic(out_path, text)
-    _make_readable(out_path)
     log.info("report: %s (%.1f MB, %d parts, %d missing) in %.1f s", out_path, len(text.encode()) / 1e6,
              len(parts.present), len(parts.missing), time.perf_counter() - t0)
     return out_path

@@ -56,28 +56,17 @@ class SplatArrays:
         return len(self.means)
 
 
-def _vertex_table(path: Path):
-    from plyfile import PlyData, PlyParseError
-
-    try:
-        ply = PlyData.read(str(path))
-        return ply["vertex"].data
-    except (PlyParseError, KeyError, ValueError, OSError, IndexError, TypeError, EOFError) as exc:
-        raise PlantsplatError(
-            f"{path}: not a readable PLY with a 'vertex' element ({type(exc).__name__}); re-run the stage that wrote it"
-        ) from exc
-
-
 def read_splat_ply(path: str | os.PathLike) -> SplatArrays:
     """Read an Inria-layout 3DGS PLY (x, y, z, f_dc_*, opacity, scale_*, rot_*).
 
-    Example:
-        >>> g = read_splat_ply("ws/export/splat.ply")  # doctest: +SKIP
-        >>> g.means.shape  # doctest: +SKIP
-        (50000, 3)
+    Usage:
+        g = read_splat_ply("ws/export/splat.ply")
+        g.means.shape
     """
+    from plantsplat.ply import read_vertices
+
     path = Path(path)
-    v = _vertex_table(path)
+    v = read_vertices(path, "re-run `plantsplat export`")
     names = set(v.dtype.names or ())
     missing = [k for k in _REQUIRED if k not in names]
     if missing:
@@ -108,10 +97,9 @@ def encode_splat(g: SplatArrays, max_gaussians: int | None = None) -> bytes:
 
     ``max_gaussians`` keeps only the most visible ones (by opacity x volume) when the model is larger.
 
-    Example:
-        >>> raw = encode_splat(g)  # doctest: +SKIP
-        >>> np.frombuffer(raw, SPLAT_DTYPE)["position"].shape  # doctest: +SKIP
-        (50000, 3)
+    Usage:
+        raw = encode_splat(g)
+        np.frombuffer(raw, SPLAT_DTYPE)["position"].shape
     """
     n = len(g)
     opacity = 1.0 / (1.0 + np.exp(-g.opacity_logits.astype(np.float64)))  # [N]
@@ -150,24 +138,15 @@ class PointCloud:
 def read_points_ply(path: str | os.PathLike, max_points: int | None = None, seed: int = 0) -> PointCloud:
     """Read x, y, z and (optional) red, green, blue from a point-cloud PLY; subsample to ``max_points``.
 
-    Example:
-        >>> pc = read_points_ply("ws/export/points.ply", max_points=100_000)  # doctest: +SKIP
-        >>> pc.positions.dtype, pc.colors.dtype  # doctest: +SKIP
-        (dtype('float32'), dtype('uint8'))
+    Usage:
+        pc = read_points_ply("ws/export/points.ply", max_points=100_000)
+        pc.positions.dtype, pc.colors.dtype
     """
-    path = Path(path)
-    v = _vertex_table(path)
-    names = set(v.dtype.names or ())
-    if not {"x", "y", "z"} <= names:
-        raise PlantsplatError(f"{path}: point cloud has no x, y, z properties; re-run `plantsplat export`")
-    pos = np.stack([np.asarray(v[k], dtype=np.float32) for k in "xyz"], axis=1)  # [N, 3]
-    if {"red", "green", "blue"} <= names:
-        col = np.stack([np.asarray(v[k]) for k in ("red", "green", "blue")], axis=1)
-        if col.dtype.kind == "f":  # some writers store colours as floats in [0, 1]
-            col = np.clip(np.round(col * 255.0), 0, 255)
-        col = np.clip(col, 0, 255).astype(np.uint8)
-    else:
-        col = np.full((len(pos), 3), 200, np.uint8)
+    from plantsplat.ply import read_point_cloud
+
+    cloud = read_point_cloud(path, "re-run `plantsplat export`")
+    pos = cloud["xyz"].astype(np.float32)  # [N, 3]
+    col = cloud["rgb"] if cloud["rgb"] is not None else np.full((len(pos), 3), 200, np.uint8)
     keep = np.isfinite(pos).all(1)
     pos, col = pos[keep], col[keep]
     if max_points is not None and len(pos) > max_points:

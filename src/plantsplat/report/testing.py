@@ -6,10 +6,9 @@ Inria-layout PLY, its centres as a point cloud, frames with masks, nerfstudio ca
 metrics, traits, run times and test-view renders. ``stages`` picks which parts exist, so reports of
 partial workspaces can be tested.
 
-Example:
-    >>> ws = make_synthetic_workspace("/tmp/ws_demo", n_gaussians=5000)  # doctest: +SKIP
-    >>> (ws / "export" / "splat.ply").is_file()  # doctest: +SKIP
-    True
+Usage:
+    ws = make_synthetic_workspace("/tmp/ws_demo", n_gaussians=5000)
+    (ws / "export" / "splat.ply").is_file()
 """
 
 from __future__ import annotations
@@ -96,41 +95,12 @@ def synthetic_gaussians(n: int, seed: int = 0) -> dict[str, np.ndarray]:
 
 
 def write_inria_ply(path: str | os.PathLike, g: dict[str, np.ndarray], sh_rest: int = 45) -> None:
-    """Write Gaussians as an Inria-layout 3DGS PLY (binary; degree-3 SH rest coefficients set to 0)."""
-    from plyfile import PlyData, PlyElement
-
-    from plantsplat.io import atomic_path
+    """Write Gaussians as an Inria-layout 3DGS PLY (degree-3 SH rest coefficients set to 0)."""
+    from plantsplat.ply import write_splat
 
     n = len(g["means"])
-    names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
-    names += [f"f_rest_{i}" for i in range(sh_rest)]
-    names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
-    arr = np.zeros(n, dtype=[(k, "<f4") for k in names])
-    for i, k in enumerate("xyz"):
-        arr[k] = g["means"][:, i]
-        arr[f"scale_{i}"] = g["log_scales"][:, i]
-        arr[f"f_dc_{i}"] = g["f_dc"][:, i]
-    for i in range(4):
-        arr[f"rot_{i}"] = g["quats"][:, i]
-    arr["opacity"] = g["opacity"]
-    with atomic_path(path) as tmp:
-        PlyData([PlyElement.describe(arr, "vertex")]).write(str(tmp))
-
-
-def write_points_ply(path: str | os.PathLike, xyz: np.ndarray, rgb_u8: np.ndarray) -> None:
-    """Write a coloured point cloud PLY (x, y, z float32; red, green, blue uint8)."""
-    from plyfile import PlyData, PlyElement
-
-    from plantsplat.io import atomic_path
-
-    arr = np.zeros(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                     ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    for i, k in enumerate("xyz"):
-        arr[k] = xyz[:, i]
-    for i, k in enumerate(("red", "green", "blue")):
-        arr[k] = rgb_u8[:, i]
-    with atomic_path(path) as tmp:
-        PlyData([PlyElement.describe(arr, "vertex")]).write(str(tmp))
+    write_splat(path, g["means"], g["log_scales"], g["quats"], g["opacity"], np.asarray(g["f_dc"])[:, None, :],
+                np.zeros((n, sh_rest // 3, 3), np.float32))
 
 
 def orbit_cameras(n: int, radius: float = 45.0, height: float = 30.0, target=(0.0, 0.0, 12.0)) -> list[np.ndarray]:
@@ -192,11 +162,13 @@ def make_synthetic_workspace(
                   for n, m in zip(names, orbit_cameras(n_frames))]
         write_json_atomic(ws.transforms_json, {"camera_model": "OPENCV", "fl_x": f, "fl_y": f, "cx": w / 2,
                                                "cy": h / 2, "w": w, "h": h, "frames": frames})
+    from plantsplat.ply import write_point_cloud
+
     g = synthetic_gaussians(n_gaussians, seed)
     if "export" in stages:
         write_inria_ply(ws.splat_ply, g)
         rgb = np.clip(np.round((0.5 + 0.28209479177387814 * g["f_dc"]) * 255), 0, 255).astype(np.uint8)
-        write_points_ply(ws.points_ply, g["means"], rgb)
+        write_point_cloud(ws.points_ply, g["means"], rgb)
     if "train" in stages:
         for i in range(0, n_frames, max(1, n_frames // 3)):
             img, _ = frame(i)

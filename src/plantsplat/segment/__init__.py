@@ -13,19 +13,15 @@ cube), ``rgba/frame_*.png`` (alpha = mask), ``segment.json`` (backend, settings,
 foreground share and how sure the segmenter is, frames left out with the reason) and
 ``masks_preview.png`` (a contact sheet that shows the least sure frames first).
 
-Example:
-    >>> info = segment_workspace("ws/plant01")                          # doctest: +SKIP
-    >>> info["backend"], info["confidence"]["min"]                      # doctest: +SKIP
-    ('3d', 0.81)
+Usage:
+    info = segment_workspace("ws/plant01")
+    info["backend"], info["confidence"]["min"]
 """
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import os
-import re
 import time
 from pathlib import Path
 from typing import Any
@@ -33,28 +29,24 @@ from typing import Any
 import numpy as np
 
 from plantsplat.errors import PlantsplatError, UsageError
-from plantsplat.io import atomic_path, png_params, read_image, read_json, write_image_atomic, write_json_atomic
+from plantsplat.io import (
+    atomic_path,
+    png_params,
+    read_image,
+    read_json,
+    staged_dir,
+    write_image_atomic,
+    write_json_atomic,
+)
 from plantsplat.log import get_logger, progress
 from plantsplat.segment.config import SegmentConfig
+from plantsplat.segment.scores import mask_iou
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
 
 SEGMENT_VERSION = 2
 PREVIEW_NAME = "masks_preview.png"
-OBJECT_FILE = ".plantsplat/segment/object.npz"
-
-
-def mask_iou(a, b) -> float:
-    """Intersection over union of two bool masks of one shape (numpy arrays or torch tensors); 0 when both are empty.
-
-    Example:
-        >>> import numpy as np
-        >>> mask_iou(np.array([True, True, False]), np.array([True, False, False]))
-        0.5
-    """
-    union = float((a | b).sum())
-    return float((a & b).sum()) / union if union > 0 else 0.0
 
 
 def preview_path(ws: Workspace) -> Path:
@@ -71,32 +63,9 @@ def _write_png(path: Path, img: np.ndarray) -> None:
             raise PlantsplatError(f"{path}: could not write image; check the disk space and permissions")
 
 
-def _fingerprint(ws: Workspace, names: list[str], cfg: SegmentConfig) -> str:
-    """Hash of what the masks depend on: the frames, the poses report and the options."""
-    h = hashlib.sha1()
-    for p in (ws.frames_json, ws.poses_json):
-        if p.is_file():
-            h.update(p.read_bytes())
-    for n in names:
-        st = (ws.images_dir / n).stat()
-        h.update(f"{n}:{st.st_size}:{int(st.st_mtime)}".encode())
-    opts = {k: str(v) for k, v in dataclasses.asdict(cfg).items() if k not in ("preview", "device")}
-    h.update(json.dumps({"version": SEGMENT_VERSION, **opts}, sort_keys=True).encode())
-    return h.hexdigest()[:16]
-
-
-def _up_to_date(ws: Workspace, names: list[str], fp: str) -> dict | None:
-    if not ws.segment_json.is_file():
-        return None
-    try:
-        old = read_json(ws.segment_json)
-    except PlantsplatError:
-        return None
-    if old.get("fingerprint") != fp:
-        return None
-    if not all((ws.masks_dir / n).is_file() and (ws.rgba_dir / n).is_file() for n in names):
-        return None
-    return old
+def outputs(ws: Workspace) -> list[Path]:
+    """Files and folders the segment stage writes."""
+    return [ws.masks_dir, ws.rgba_dir, ws.segment_json]
 
 
 def calibrated_cube(ws: Workspace):
@@ -112,14 +81,15 @@ def calibrated_cube(ws: Workspace):
     return CubeSpec()
 
 
-def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig):
+def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool = False):
     """The ``3d`` backend: ``({name: (plant, cube) bool masks}, per-frame facts, capture facts)``."""
     from plantsplat.segment.frame import distortion_map, object_prior, refine, to_frame
     from plantsplat.segment.object3d import object_model
     from plantsplat.segment.scene import scene_model
+    from plantsplat.segment.stored import save_object
 
     t0 = time.perf_counter()
-    params, views, points = scene_model(ws, cfg)
+    params, views, points = scene_model(ws, cfg, resume)
     t_model = time.perf_counter() - t0
     obj = object_model(params, views, calibrated_cube(ws), points, min_in_view=cfg.min_in_view,
                        sfm_reach=cfg.sfm_reach, seed=cfg.seed)
@@ -143,24 +113,15 @@ def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig):
     return parts, facts, info
 
 
-def save_object(ws: Workspace, obj) -> None:
-    """The plant flags and geometry of the 3D object, beside the quick model (segmenting renders reuses them)."""
-    path = ws.root / OBJECT_FILE
-    with atomic_path(path, suffix=".npz") as tmp:
-        np.savez(tmp, plant=obj.plant, axis=obj.axis, up=obj.up, info=json.dumps(obj.info),
-                 cube=json.dumps(None if obj.cube is None else {"size": obj.cube.size, "marker_size": obj.cube.marker_size,
-                                                                "dictionary": obj.cube.dictionary,
-                                                                "face_ids": list(obj.cube.face_ids)}))
-
-
-def segment_workspace(ws: Workspace | str | os.PathLike, cfg: SegmentConfig | None = None, force: bool = False
+def segment_workspace(ws: Workspace | str | os.PathLike, cfg: SegmentConfig | None = None, resume: bool = False
                       ) -> dict[str, Any]:
     """Segment every frame in ``ws/images`` into plant + cube; write masks, RGBA, ``segment.json`` and a preview.
 
-    Needs the poses stage's cameras (``3d`` and ``sam2``), or the masks of ``cfg.import_masks``.
-    Skips the work when ``segment.json`` says the masks are up to date for the same frames, poses and
-    options (``force`` redoes it). Raises :class:`PlantsplatError` on bad input and when more than
-    ``cfg.max_excluded`` of the frames have no plant (nothing is written then).
+    Needs the poses stage's cameras (``3d`` and ``sam2``), or the masks of ``cfg.import_masks``. The
+    ``masks/`` and ``rgba/`` folders are each replaced whole when they are complete. Raises
+    :class:`PlantsplatError` on bad input and when more than ``cfg.max_excluded`` of the frames have no
+    plant (nothing is written then). ``resume``: go on from the checkpoint of the quick model of an
+    interrupted run with the same options and inputs.
     """
     cfg = cfg or SegmentConfig()
     ws = ws if isinstance(ws, Workspace) else Workspace(ws)
@@ -172,12 +133,6 @@ def segment_workspace(ws: Workspace | str | os.PathLike, cfg: SegmentConfig | No
     if cfg.import_masks is None and not (ws.sparse_dir.is_dir() or ws.transforms_json.is_file()):
         raise PlantsplatError(f"{ws.root}: no camera poses; run `plantsplat poses {ws.root}` first (the segmenter "
                               "decides the plant in 3D), or pass --import-masks DIR")
-    fp = _fingerprint(ws, names, cfg)
-    if not force:
-        old = _up_to_date(ws, names, fp)
-        if old is not None:
-            log.info("%s: masks are up to date (%s); pass --force to redo", ws.root, old.get("backend"))
-            return old
     t0 = time.perf_counter()
     if cfg.import_masks is not None:
         from plantsplat.segment.imports import import_masks
@@ -185,13 +140,13 @@ def segment_workspace(ws: Workspace | str | os.PathLike, cfg: SegmentConfig | No
         masks, facts, info = import_masks(Path(cfg.import_masks), ws, names), {}, {"source": str(cfg.import_masks)}
         backend = "import"
     else:
-        parts, facts, info = _masks_3d(ws, names, cfg)
+        parts, facts, info = _masks_3d(ws, names, cfg, resume)
         masks = {n: p | c for n, (p, c) in parts.items()}
         backend = "3d"
         if cfg.backend == "sam2":
             masks, info["sam2"] = _sam2(ws, names, parts, cfg)
             backend = "sam2"
-    return _write_outputs(ws, names, masks, facts, info, backend, fp, cfg, time.perf_counter() - t0)
+    return _write_outputs(ws, names, masks, facts, info, backend, cfg, time.perf_counter() - t0)
 
 
 def _sam2(ws: Workspace, names: list[str], parts: dict, cfg: SegmentConfig):
@@ -206,7 +161,7 @@ def _sam2(ws: Workspace, names: list[str], parts: dict, cfg: SegmentConfig):
 
 
 def _write_outputs(ws: Workspace, names: list[str], masks: dict[str, np.ndarray], facts: dict[str, dict], info: dict,
-                   backend: str, fp: str, cfg: SegmentConfig, seconds: float) -> dict:
+                   backend: str, cfg: SegmentConfig, seconds: float) -> dict:
     """Masks, RGBA frames, the preview and ``segment.json``; the frames without a plant are listed."""
     import cv2
 
@@ -223,20 +178,16 @@ def _write_outputs(ws: Workspace, names: list[str], masks: dict[str, np.ndarray]
         raise PlantsplatError(
             f"{ws.images_dir}: no plant in {len(excluded)} of {len(names)} frames (e.g. {excluded[0]['name']}: "
             f"{excluded[0]['reason']}); check the capture and the poses; nothing was written")
-    for n in progress(names, "segment: writing masks and RGBA"):
-        m8 = masks[n].astype(np.uint8) * 255 if n in masks else np.zeros(shape, np.uint8)
-        _write_png(ws.masks_dir / n, m8)
-        bgr = cv2.cvtColor(read_image(ws.images_dir / n), cv2.COLOR_RGB2BGR)
-        _write_png(ws.rgba_dir / n, cv2.merge([*cv2.split(bgr), m8]))
-    keep = set(names)
-    for d in (ws.masks_dir, ws.rgba_dir):  # stale outputs of an earlier, different set of frames
-        for f in d.iterdir():
-            if f.name not in keep and re.fullmatch(r"frame_\d{5}\.png", f.name):
-                f.unlink(missing_ok=True)
+    with staged_dir(ws.masks_dir) as masks_dir, staged_dir(ws.rgba_dir) as rgba_dir:
+        for n in progress(names, "segment: writing masks and RGBA"):
+            m8 = masks[n].astype(np.uint8) * 255 if n in masks else np.zeros(shape, np.uint8)
+            _write_png(masks_dir / n, m8)
+            bgr = cv2.cvtColor(read_image(ws.images_dir / n), cv2.COLOR_RGB2BGR)
+            _write_png(rgba_dir / n, cv2.merge([*cv2.split(bgr), m8]))
     conf = [r["confidence"] for r in per_frame if r.get("confidence") is not None]
     fg = [r["foreground_fraction"] for r in per_frame]
     out = {
-        "backend": backend, "version": SEGMENT_VERSION, "fingerprint": fp,
+        "backend": backend, "version": SEGMENT_VERSION,
         "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(cfg).items()},
         "image_size": [shape[1], shape[0]], "capture": info,
         "timing": {"total_s": round(seconds, 2), "seconds_per_frame": round(seconds / len(names), 4),
@@ -274,40 +225,4 @@ def _preview(ws: Workspace, names: list[str], per_frame: list[dict], excluded: s
     write_image_atomic(preview_path(ws), sheet)
 
 
-def load_object(ws: Workspace):
-    """The 3D object the segment stage found (:func:`save_object`) with its quick model, and the cameras by name."""
-    from plantsplat.cube import CubeSpec
-    from plantsplat.segment.object3d import ObjectModel
-    from plantsplat.segment.scene import scene_dir
-    from plantsplat.train.data import load_scene
-    from plantsplat.train.trainer import load_model
-
-    path = ws.root / OBJECT_FILE
-    if not path.is_file():
-        raise PlantsplatError(f"{path}: missing; run `plantsplat segment {ws.root}` (the 3d backend) first")
-    data = np.load(path)
-    params, _ = load_model(ws, scene_dir(ws))
-    cube = json.loads(str(data["cube"]))
-    obj = ObjectModel(params={k: v.detach().cpu() for k, v in params.items()}, plant=data["plant"],
-                      cube=None if cube is None else CubeSpec(**{**cube, "face_ids": tuple(cube["face_ids"])}),
-                      axis=data["axis"], up=data["up"], info=json.loads(str(data["info"])))
-    return obj, {v.name: v for v in load_scene(ws, need_masks=False, load_images=False).views}
-
-
-def segment_images(ws: Workspace, images: dict[str, np.ndarray], band_px: int | None = None) -> dict[str, np.ndarray]:
-    """Masks ``{name: [h, w] bool}`` of images taken through the workspace's pinhole cameras (such as renders of its
-    test views, ``[h, w, 3]`` uint8 at any size), cut as the segment stage cuts the frames: the 3D object it
-    found, drawn into each camera and refined on the image."""
-    import cv2
-
-    from plantsplat.segment.frame import object_prior, refine
-
-    obj, views = load_object(ws)
-    band = SegmentConfig().refine_band_px if band_px is None else band_px
-    out = {}
-    for name, rgb in images.items():
-        prior = np.maximum(*object_prior(obj, views[name]))
-        if prior.shape != rgb.shape[:2]:
-            prior = cv2.resize(prior, (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_AREA)
-        out[name] = refine(rgb, prior, band) if band > 0 else prior > 0.5
-    return out
+__all__ = ["SegmentConfig", "mask_iou", "outputs", "preview_path", "segment_workspace"]

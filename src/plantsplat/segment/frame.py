@@ -8,9 +8,9 @@ the outline onto the image's own edges: OpenCV's GrabCut, started from the prior
 outside, undecided in a band along the outline), learns the frame's plant and background colours
 and cuts along the strongest edges in the band.
 
-Example:
-    >>> plant, cube = object_prior(obj, view)                       # doctest: +SKIP
-    >>> mask = refine(rgb, np.maximum(plant, cube), band_px=6)      # doctest: +SKIP
+Usage:
+    plant, cube = object_prior(obj, view)
+    mask = refine(rgb, np.maximum(plant, cube), band_px=6)
 """
 
 from __future__ import annotations

@@ -3,10 +3,11 @@
 One mask per frame, found by the frame's name (``frame_00012.png``), or by the name the frame had in
 the folder it was extracted from (``frames.json``), with any common image extension. Plant or cube is
 above half the mask's range: 255 of 0/255 masks (JPEG's ringing around the outline is left out), 1 of
-0/1 masks (an image with an alpha channel, such as an RGBA frame, gives its alpha). Every frame needs one, of the frame's size; what is wrong is said in one line.
+0/1 masks (an image with an alpha channel, such as an RGBA frame, gives its alpha). Every frame needs one, of the
+frame's size; what is wrong is said in one line.
 
-Example:
-    >>> masks = import_masks(Path("sam2_masks"), Workspace("ws/plant01"), names)    # doctest: +SKIP
+Usage:
+    masks = import_masks(Path("sam2_masks"), Workspace("ws/plant01"), names)
 """
 
 from __future__ import annotations

@@ -18,10 +18,9 @@ the ground at the origin). What holds in any room:
 model are plant, and the cube. Without a calibrated cube there is no ground, pot or cube: the plant
 is what stands near the orbit's axis, in view of the cameras.
 
-Example:
-    >>> obj = object_model(params, views, calibrated=True)     # doctest: +SKIP
-    >>> int(obj.plant.sum()), obj.pot                          # doctest: +SKIP
-    (14210, {'voxels': 2310, 'top_cm': 14.0, 'radius_cm': 9.5})
+Usage:
+    obj = object_model(params, views, calibrated=True)
+    int(obj.plant.sum()), obj.pot
 """
 
 from __future__ import annotations

@@ -1,10 +1,8 @@
 """Mask overlay contact sheet: a grid of frames with the background dimmed and the mask outlined.
 
-Example:
-    >>> from plantsplat.segment.preview import contact_sheet
-    >>> sheet = contact_sheet(["ws/images/frame_00000.png"], ["ws/masks/frame_00000.png"])
-    >>> sheet.dtype, sheet.ndim
-    (dtype('uint8'), 3)
+Usage:
+    from plantsplat.segment.preview import contact_sheet
+    sheet = contact_sheet(["ws/images/frame_00000.png"], ["ws/masks/frame_00000.png"])  # [H, W, 3] uint8
 """
 
 from __future__ import annotations
@@ -36,14 +34,15 @@ def overlay(rgb: np.ndarray, mask: np.ndarray, excluded: bool = False) -> np.nda
 
 def contact_sheet(
     images: Sequence[str | os.PathLike],
-    masks: Sequence[str | os.PathLike | np.ndarray],
+    masks: Sequence[str | os.PathLike | np.ndarray | None],
     labels: Sequence[str] | None = None,
     excluded: Sequence[bool] | None = None,
     max_tiles: int = 16,
     tile_height: int = 320,
     columns: int = 4,
 ) -> np.ndarray:
-    """A contact sheet of up to ``max_tiles`` frames spread over the capture, masks overlaid.
+    """A contact sheet of up to ``max_tiles`` frames spread over the capture, masks overlaid (a frame whose
+    mask is None is shown as it is).
 
     Returns an RGB uint8 image ``[rows * tile_height (+ labels), columns * tile_width, 3]``.
     """
@@ -57,13 +56,14 @@ def contact_sheet(
     for k in pick:
         rgb = read_image(images[k])
         mk = masks[k]
-        m = mk if isinstance(mk, np.ndarray) else read_image(mk, mode="gray")
         h, w = rgb.shape[:2]
         tw = max(1, round(w * tile_height / h))
         # overlay at the tile's size (a full-size overlay was most of the sheet's time)
-        small = cv2.resize(rgb, (tw, tile_height), interpolation=cv2.INTER_AREA)
-        m_small = cv2.resize((m > 0).astype(np.uint8) * 255, (tw, tile_height), interpolation=cv2.INTER_AREA) > 127
-        tile = overlay(small, m_small, bool(excluded[k]) if excluded is not None else False)
+        tile = cv2.resize(rgb, (tw, tile_height), interpolation=cv2.INTER_AREA)
+        if mk is not None:
+            m = mk if isinstance(mk, np.ndarray) else read_image(mk, mode="gray")
+            m_small = cv2.resize((m > 0).astype(np.uint8) * 255, (tw, tile_height), interpolation=cv2.INTER_AREA) > 127
+            tile = overlay(tile, m_small, bool(excluded[k]) if excluded is not None else False)
         text = labels[k] if labels is not None else str(k)
         cv2.rectangle(tile, (0, 0), (tw, 18), (0, 0, 0), -1)
         cv2.putText(tile, text, (4, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1, cv2.LINE_AA)

@@ -10,9 +10,9 @@ Uses only SAM-2's documented video API (``build_sam2_video_predictor``, ``init_s
 of ``<index>.jpg`` frames, ``add_new_points_or_box``, ``propagate_in_video``). The video path of
 the ``sam2`` package does not import torchvision, so it runs with the CPU build of torch.
 
-Example:
-    >>> masks, info = sam2_segment(paths, parts, Path("sam2.1_hiera_tiny.pt"),
-    ...                            "configs/sam2.1/sam2.1_hiera_t.yaml")   # doctest: +SKIP
+Usage:
+    masks, info = sam2_segment(paths, parts, Path("sam2.1_hiera_tiny.pt"),
+                               "configs/sam2.1/sam2.1_hiera_t.yaml")
 """
 
 from __future__ import annotations
@@ -80,15 +80,14 @@ def random_checkpoint(config: str, path: str | os.PathLike, seed: int = 0) -> Pa
     """Save a SAM-2 checkpoint of the architecture ``config`` with random weights (``{'model': state_dict}``) to
     ``path``: for tests of the plumbing and for timing, never for masks (speed does not depend on the weights).
 
-    Example:
-        >>> random_checkpoint("configs/sam2.1/sam2.1_hiera_t.yaml", "/tmp/sam2.1_hiera_tiny.pt")  # doctest: +SKIP
+    Usage:
+        random_checkpoint("configs/sam2.1/sam2.1_hiera_t.yaml", "/tmp/sam2.1_hiera_tiny.pt")
     """
+    import sam2  # noqa: F401  (registers SAM-2's configs with hydra)
     import torch
     from hydra import compose
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
-
-    import sam2  # noqa: F401  (registers SAM-2's configs with hydra)
 
     cfg = compose(config_name=config)
     OmegaConf.resolve(cfg)

@@ -2,34 +2,28 @@
 
 It is an ordinary full-scene 3DGS model (plantsplat's own trainer, ``mode="full"``: no masks) at a low
 resolution with few Gaussians: enough to put every surface of the room and the plant at its place in
-3D. It lives in ``WS/.plantsplat/segment/scene/``; an interrupted run resumes from its checkpoint.
+3D. It lives in ``WS/.plantsplat/segment/scene/``; an interrupted segment stage resumes from its checkpoint.
 
-Example:
-    >>> params, views, points = scene_model(Workspace("ws/plant01"), SegmentConfig())   # doctest: +SKIP
+Usage:
+    params, views, points = scene_model(Workspace("ws/plant01"), SegmentConfig())
 """
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from plantsplat.log import get_logger
 from plantsplat.segment.config import SegmentConfig
+from plantsplat.segment.stored import scene_dir
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
 
-SCENE_DIR = ".plantsplat/segment/scene"
-
-
-def scene_dir(ws: Workspace) -> Path:
-    return ws.root / SCENE_DIR
-
-
-def scene_model(ws: Workspace, cfg: SegmentConfig):
-    """Train (or reuse) the quick model; returns ``(params, views, sfm points [P, 3])`` (tensors detached)."""
-    from plantsplat.train import TrainConfig, train_workspace
+def scene_model(ws: Workspace, cfg: SegmentConfig, resume: bool = False):
+    """Train the quick model (``resume``: from an interrupted run's checkpoint); returns ``(params, views,
+    sfm points [P, 3])`` (tensors detached)."""
+    from plantsplat.train.checkpoint import load_model
+    from plantsplat.train.config import TrainConfig
     from plantsplat.train.data import load_scene
-    from plantsplat.train.trainer import load_model
+    from plantsplat.train.trainer import train_workspace
 
     out = scene_dir(ws)
     log.info("segment: a quick model of the whole scene (%d steps at %d px) to find the plant in 3D",
@@ -37,7 +31,7 @@ def scene_model(ws: Workspace, cfg: SegmentConfig):
     train_workspace(ws, TrainConfig(
         mode="full", backend="auto", preset="cpu", iterations=cfg.scene_steps, max_resolution=cfg.scene_resolution,
         num_downscales=0, sh_degree=1, max_gaussians=cfg.scene_max_gaussians, occluders=False, evaluate=False,
-        test_fraction=0.02, seed=cfg.seed, train_dir=out, metrics_path=out / "metrics.json"))
+        test_fraction=0.02, seed=cfg.seed, train_dir=out, metrics_path=out / "metrics.json"), resume=resume)
     params, _ = load_model(ws, out)
     scene = load_scene(ws, need_masks=False, load_images=False)
     return {k: v.detach().cpu() for k, v in params.items()}, scene.views, scene.points

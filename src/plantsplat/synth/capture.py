@@ -17,8 +17,9 @@ import numpy as np
 from plantsplat.errors import UsageError
 from plantsplat.io import write_image_atomic, write_json_atomic
 from plantsplat.log import get_logger, progress
-from plantsplat.synth import FORMAT, SynthConfig
+from plantsplat.synth.config import FORMAT, SynthConfig
 from plantsplat.synth.mesh import CLASS_NAMES
+from plantsplat.traitdefs import TRAIT_KEYS
 from plantsplat.workspace import IMAGE_PATTERN, prepare_output_dir
 
 log = get_logger(__name__)
@@ -147,7 +148,7 @@ def generate(cfg: SynthConfig) -> dict:
     cube_meshes = [m for m in scene["meshes"] if m.cls in CUBE_CLASSES]
     cube_s = gt.cube_samples(cube_meshes, layers, cfg.gt_density, rng_gt)
     n_ripe = sum(bool(f["ripe"]) for f in scene["plant_info"]["fruits"])
-    traits = gt.traits(plant["xyz"], n_ripe)
+    traits = gt.traits(plant["xyz"], n_ripe, soil_z=scene["pot"].soil_z)
     gt.write_ply(out / "plant_gt.ply", plant)
     gt.write_ply(out / "scene_gt.ply", {k: np.concatenate([plant[k], cube_s[k]]) for k in plant})
     timings["ground_truth_s"] = time.perf_counter() - t
@@ -164,7 +165,7 @@ def generate(cfg: SynthConfig) -> dict:
     cube_pts = cube.corners() @ T_wc[:3, :3].T + T_wc[:3, 3]
     reach = float(max(np.linalg.norm(plant["xyz"][:, :2], axis=1).max(), np.linalg.norm(cube_pts[:, :2], axis=1).max()))
     pot = scene["pot"]
-    c2ws, rings, path = cam.camera_path(rng_cam, cfg.frames, pot.soil_z, traits["height_cm"], reach, fov_short)
+    c2ws, rings, path = cam.camera_path(rng_cam, cfg.frames, pot.soil_z, traits["height_extent_cm"], reach, fov_short)
 
     # render
     sensor = SensorModel.draw(np.random.default_rng(s_sensor), cfg.frames, clean=cfg.clean)
@@ -255,8 +256,7 @@ def generate(cfg: SynthConfig) -> dict:
     timings["total_s"] = time.perf_counter() - t_all
     doc = dict(
         format=FORMAT, seed=int(cfg.seed), units="cm", world_frame=WORLD_FRAME,
-        **{k: traits[k] for k in ("height_cm", "width1_cm", "width2_cm", "canopy_volume_cm3", "canopy_area_cm2",
-                                  "fruit_count")},
+        **{k: traits[k] for k in TRAIT_KEYS},
         fruit_count_all=int(scene["plant_info"]["n_fruits"]),
         trait_source="plant_gt.ply (all plant mesh vertices + area-uniform samples), plantsplat.traitdefs",
         plant=plant_json, platform=scene["platform"], room=scene["room"], lights=scene["lights"],

@@ -20,13 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from plantsplat.io import atomic_path
 from plantsplat.synth.mesh import CUBE_BASE, ORGAN_OF_CLASS, Mesh
 
 CUBE_ORGAN = 10
-PLY_DTYPE = [("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1"),
-             ("organ", "u1"), ("instance", "i4")]
-
 
 def _texture_colour(layers: np.ndarray, layer: int, uv: np.ndarray, tint: np.ndarray) -> np.ndarray:
     size = layers.shape[1]
@@ -75,33 +71,18 @@ def cube_samples(cube_meshes: list[Mesh], layers: np.ndarray, density: float, rn
 
 def write_ply(path: str | Path, s: dict[str, np.ndarray]) -> None:
     """Binary little-endian PLY with x, y, z (float32), red, green, blue, organ (uchar), instance (int32)."""
-    from plyfile import PlyData, PlyElement
+    from plantsplat.ply import write_point_cloud
 
-    arr = np.empty(len(s["xyz"]), dtype=PLY_DTYPE)
-    arr["x"], arr["y"], arr["z"] = s["xyz"].astype("f4").T
-    arr["red"], arr["green"], arr["blue"] = s["rgb"].T
-    arr["organ"] = s["organ"]
-    arr["instance"] = s["instance"]
-    with atomic_path(path) as tmp:
-        PlyData([PlyElement.describe(arr, "vertex")], text=False, byte_order="<").write(str(tmp))
+    write_point_cloud(path, s["xyz"], s["rgb"], organ=np.asarray(s["organ"], np.uint8),
+                      instance=np.asarray(s["instance"], np.int32))
 
 
-def read_ply(path: str | Path) -> dict[str, np.ndarray]:
-    """Read a PLY written by :func:`write_ply` back into ``xyz``, ``rgb``, ``organ``, ``instance``."""
-    from plyfile import PlyData
-
-    v = PlyData.read(str(path))["vertex"].data
-    return dict(xyz=np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float64),
-                rgb=np.stack([v["red"], v["green"], v["blue"]], 1), organ=np.asarray(v["organ"]),
-                instance=np.asarray(v["instance"]))
-
-
-def traits(xyz: np.ndarray, n_fruits: int) -> dict[str, float]:
-    """Ground-truth traits with the shared definitions of :mod:`plantsplat.traitdefs`
-    (``n_fruits``: the ripe, red fruits, which is what ``fruit_count`` counts)."""
+def traits(xyz: np.ndarray, n_fruits: int, soil_z: float) -> dict[str, float]:
+    """Ground-truth traits with the shared definitions of :mod:`plantsplat.traitdefs`: height above the soil at
+    ``soil_z`` (``n_fruits``: the ripe, red fruits, which is what ``fruit_count`` counts)."""
     from plantsplat.traitdefs import geometric_traits
 
-    t = geometric_traits(xyz)
+    t = geometric_traits(xyz, soil_z=soil_z)
     t["fruit_count"] = int(n_fruits)
     return t
 

@@ -180,7 +180,8 @@ def _leaf(rng, idx, crown, crown_r, azim, L, elev, leaflet_len, pot: Pot, tint, 
         stalks.append(tube_mesh(np.linspace(tip, start + d * 0.1, 3), 0.07, 5, pet_col, uv_scale=0.05,
                                 layer=T.WHITE, cls=PETIOLE, instance=idx))
     blade = merge(blades)
-    return [petiole, merge(stalks), blade], curve, blade.v, dict(azimuth_deg=float(np.degrees(azim) % 360), petiole_length_cm=float(L),
+    return [petiole, merge(stalks), blade], curve, blade.v, dict(azimuth_deg=float(np.degrees(azim) % 360),
+                                                                 petiole_length_cm=float(L),
                                                   elevation_deg=float(np.degrees(elev)),
                                                   leaflet_length_cm=float(leaflet_len))
 

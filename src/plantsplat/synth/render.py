@@ -10,10 +10,10 @@ Two passes per frame, both from the same vertex buffer and the same projection:
 Projection matches OpenCV exactly: pixel (u, v) centre at integer coordinates, ``u = fx X/Z + cx``,
 rows counted from the top. The GL image is flipped to top-down rows when read back.
 
-Example:
-    >>> r = Renderer(meshes, layers, intr, lights)           # doctest: +SKIP
-    >>> # rgb_linear [H, W, 3] float32 (linear radiance), ids [H, W] uint8 (class per pixel)
-    >>> rgb_linear, ids = r.render(c2w)                      # doctest: +SKIP
+Usage:
+    r = Renderer(meshes, layers, intr, lights)
+    # rgb_linear [H, W, 3] float32 (linear radiance), ids [H, W] uint8 (class per pixel)
+    rgb_linear, ids = r.render(c2w)
 """
 
 from __future__ import annotations

@@ -79,111 +79,145 @@ def cube_meshes(cube: CubeSpec, T_world_cube: np.ndarray) -> list[Mesh]:
     return out
 
 
-def _furniture(rng, room, floor_z, avoid_r) -> tuple[list[Mesh], list[dict]]:
-    """Boxes, a table, shelves, buckets and green decoys placed on the floor around the platform."""
-    (x0, x1), (y0, y1) = room
-    meshes, items, placed = [], [], []
+class _Placer:
+    """Free spots on the floor, away from the platform and from what is already placed."""
 
-    def free_spot(radius):
+    def __init__(self, rng, room, avoid_r):
+        self.rng, self.room, self.avoid_r = rng, room, avoid_r
+        self.placed: list[tuple[np.ndarray, float]] = []
+
+    def free_spot(self, radius):
+        (x0, x1), (y0, y1) = self.room
         for _ in range(60):
-            p = np.array([rng.uniform(x0 + radius, x1 - radius), rng.uniform(y0 + radius, y1 - radius)])
-            if np.linalg.norm(p) < avoid_r + radius:
+            p = np.array([self.rng.uniform(x0 + radius, x1 - radius), self.rng.uniform(y0 + radius, y1 - radius)])
+            if np.linalg.norm(p) < self.avoid_r + radius:
                 continue
-            if all(np.linalg.norm(p - q) > radius + s for q, s in placed):
-                placed.append((p, radius))
+            if all(np.linalg.norm(p - q) > radius + s for q, s in self.placed):
+                self.placed.append((p, radius))
                 return p
         return None
 
+
+_BOX_LAYERS = [T.CARDBOARD, T.CARDBOARD, T.PRINT, T.FABRIC, T.CHECKER, T.WOOD, T.GREEN_DECOY, T.FOLIAGE_PRINT]
+
+
+def _box_item(rng, kind: str, placer: _Placer, floor_z: float):
+    """A box, a stack of two boxes or a green decoy box."""
+    sx, sy, sz = rng.uniform(20, 60), rng.uniform(20, 60), rng.uniform(15, 70)
+    p = placer.free_spot(0.5 * np.hypot(sx, sy))
+    if p is None:
+        return None
+    layer = T.GREEN_DECOY if kind == "green" else int(rng.choice(_BOX_LAYERS))
+    col = rng.uniform(0.75, 1.0, 3)
+    R = rot_z(rng.uniform(0, np.pi))
+    b = box_mesh((-sx / 2, -sy / 2, 0), (sx / 2, sy / 2, sz), col, uv_per_cm=1 / max(sx, sy, sz),
+                 layer=layer, cls=FURNITURE)
+    meshes = [b.transformed(R, np.array([p[0], p[1], floor_z]))]
+    if kind == "stack":
+        s2 = rng.uniform(0.5, 0.9)
+        b2 = box_mesh((-sx * s2 / 2, -sy * s2 / 2, sz), (sx * s2 / 2, sy * s2 / 2, sz + rng.uniform(10, 40)),
+                      rng.uniform(0.75, 1.0, 3), uv_per_cm=1 / 40, layer=int(rng.choice(_BOX_LAYERS)),
+                      cls=FURNITURE)
+        meshes.append(b2.transformed(R @ rot_z(rng.uniform(-0.4, 0.4)), np.array([p[0], p[1], floor_z])))
+    return meshes, dict(kind=kind, xy=p.tolist(), layer=int(layer))
+
+
+def _table_item(rng, placer: _Placer, floor_z: float):
+    """A table with a few things on it."""
+    sx, sy, hz = rng.uniform(60, 120), rng.uniform(50, 80), rng.uniform(70, 80)
+    p = placer.free_spot(0.5 * np.hypot(sx, sy))
+    if p is None:
+        return None
+    R = rot_z(rng.uniform(0, np.pi))
+    parts = [box_mesh((-sx / 2, -sy / 2, hz - 3), (sx / 2, sy / 2, hz), (1, 1, 1), uv_per_cm=1 / 80,
+                      layer=T.WOOD, cls=FURNITURE)]
+    for dx in (-1, 1):
+        for dy in (-1, 1):
+            cx, cy = dx * (sx / 2 - 4), dy * (sy / 2 - 4)
+            parts.append(box_mesh((cx - 2, cy - 2, 0), (cx + 2, cy + 2, hz - 3), (0.8, 0.8, 0.8),
+                                  uv_per_cm=1 / 80, layer=T.WOOD, cls=FURNITURE))
+    for _ in range(int(rng.integers(1, 4))):
+        bx, by, bz = rng.uniform(8, 25), rng.uniform(8, 25), rng.uniform(5, 30)
+        cx, cy = rng.uniform(-sx / 2 + bx, sx / 2 - bx), rng.uniform(-sy / 2 + by, sy / 2 - by)
+        parts.append(box_mesh((cx - bx / 2, cy - by / 2, hz), (cx + bx / 2, cy + by / 2, hz + bz),
+                              rng.uniform(0.7, 1, 3), uv_per_cm=1 / 30,
+                              layer=int(rng.choice([T.PRINT, T.CARDBOARD, T.GREEN_DECOY, T.FABRIC])),
+                              cls=FURNITURE))
+    return [part.transformed(R, np.array([p[0], p[1], floor_z])) for part in parts], dict(kind="table", xy=p.tolist())
+
+
+def _bucket_item(rng, placer: _Placer, floor_z: float):
+    """A bucket, green in 40 % of the draws."""
+    r, hz = rng.uniform(10, 25), rng.uniform(20, 50)
+    p = placer.free_spot(r)
+    if p is None:
+        return None
+    green = rng.random() < 0.4
+    col = np.array([0.15, 0.55, 0.2]) if green else rng.uniform(0.1, 0.9, 3)
+    mesh = cylinder_mesh((p[0], p[1]), r, floor_z, floor_z + hz, 32, col, uv_per_cm=1 / 40,
+                         layer=T.PLATFORM, cls=FURNITURE)
+    return [mesh], dict(kind="green bucket" if green else "bucket", xy=p.tolist())
+
+
+def _shelf_books(rng, w: float, d: float, hz: float) -> list[Mesh]:
+    parts = []
+    for z in np.linspace(0, hz - 2, 4)[:-1]:
+        xx = -w / 2 + 2
+        while xx < w / 2 - 6:
+            bw = rng.uniform(2, 10)
+            bh = rng.uniform(10, min(30, (hz - 2) / 3 - 4))
+            parts.append(box_mesh((xx, -d / 2 + 2, z + 2), (xx + bw, d / 2 - 4, z + 2 + bh),
+                                  np.array(rng.uniform(0.2, 1.0, 3)), uv_per_cm=1 / 20,
+                                  layer=int(rng.choice([T.PRINT, T.FABRIC, T.WHITE, T.CHECKER])),
+                                  cls=FURNITURE))
+            xx += bw + rng.uniform(0, 4)
+    return parts
+
+
+def _shelf_item(rng, placer: _Placer, floor_z: float):
+    """A shelf against a wall with books and boxes."""
+    (x0, x1), (y0, y1) = placer.room
+    wall = int(rng.integers(4))
+    w, d, hz = rng.uniform(60, 120), rng.uniform(25, 40), rng.uniform(100, 200)
+    if wall < 2:
+        x = x0 + d / 2 + 1 if wall == 0 else x1 - d / 2 - 1
+        y = rng.uniform(y0 + w / 2, y1 - w / 2)
+        R = rot_z(np.pi / 2)
+    else:
+        y = y0 + d / 2 + 1 if wall == 2 else y1 - d / 2 - 1
+        x = rng.uniform(x0 + w / 2, x1 - w / 2)
+        R = np.eye(3)
+    p = np.array([x, y])
+    if np.linalg.norm(p) < placer.avoid_r + 0.5 * np.hypot(w, d):
+        return None
+    placer.placed.append((p, 0.5 * np.hypot(w, d)))
+    parts = [box_mesh((-w / 2, -d / 2, z), (w / 2, d / 2, z + 2), (0.9, 0.9, 0.9), uv_per_cm=1 / 60,
+                      layer=T.WOOD, cls=FURNITURE) for z in np.linspace(0, hz - 2, 4)]
+    for side in (-1, 1):
+        parts.append(box_mesh((side * w / 2 - 1, -d / 2, 0), (side * w / 2 + 1, d / 2, hz), (0.9, 0.9, 0.9),
+                              uv_per_cm=1 / 60, layer=T.WOOD, cls=FURNITURE))
+    parts += _shelf_books(rng, w, d, hz)
+    return [part.transformed(R, np.array([p[0], p[1], floor_z])) for part in parts], dict(kind="shelf", xy=p.tolist())
+
+
+def _furniture(rng, room, floor_z, avoid_r) -> tuple[list[Mesh], list[dict]]:
+    """Boxes, a table, shelves, buckets and green decoys placed on the floor around the platform."""
+    placer = _Placer(rng, room, avoid_r)
+    meshes, items = [], []
     n_items = int(rng.integers(10, 22))
-    layers_box = [T.CARDBOARD, T.CARDBOARD, T.PRINT, T.FABRIC, T.CHECKER, T.WOOD, T.GREEN_DECOY, T.FOLIAGE_PRINT]
-    for k in range(n_items):
+    for _ in range(n_items):
         kind = rng.choice(["box", "box", "stack", "table", "bucket", "green", "shelf"])
         if kind in ("box", "green", "stack"):
-            sx, sy, sz = rng.uniform(20, 60), rng.uniform(20, 60), rng.uniform(15, 70)
-            p = free_spot(0.5 * np.hypot(sx, sy))
-            if p is None:
-                continue
-            layer = T.GREEN_DECOY if kind == "green" else int(rng.choice(layers_box))
-            col = rng.uniform(0.75, 1.0, 3)
-            R = rot_z(rng.uniform(0, np.pi))
-            b = box_mesh((-sx / 2, -sy / 2, 0), (sx / 2, sy / 2, sz), col, uv_per_cm=1 / max(sx, sy, sz),
-                         layer=layer, cls=FURNITURE)
-            meshes.append(b.transformed(R, np.array([p[0], p[1], floor_z])))
-            if kind == "stack":
-                s2 = rng.uniform(0.5, 0.9)
-                b2 = box_mesh((-sx * s2 / 2, -sy * s2 / 2, sz), (sx * s2 / 2, sy * s2 / 2, sz + rng.uniform(10, 40)),
-                              rng.uniform(0.75, 1.0, 3), uv_per_cm=1 / 40, layer=int(rng.choice(layers_box)),
-                              cls=FURNITURE)
-                meshes.append(b2.transformed(R @ rot_z(rng.uniform(-0.4, 0.4)), np.array([p[0], p[1], floor_z])))
-            items.append(dict(kind=kind, xy=p.tolist(), layer=int(layer)))
+            made = _box_item(rng, str(kind), placer, floor_z)
         elif kind == "table":
-            sx, sy, hz = rng.uniform(60, 120), rng.uniform(50, 80), rng.uniform(70, 80)
-            p = free_spot(0.5 * np.hypot(sx, sy))
-            if p is None:
-                continue
-            R = rot_z(rng.uniform(0, np.pi))
-            parts = [box_mesh((-sx / 2, -sy / 2, hz - 3), (sx / 2, sy / 2, hz), (1, 1, 1), uv_per_cm=1 / 80,
-                              layer=T.WOOD, cls=FURNITURE)]
-            for dx in (-1, 1):
-                for dy in (-1, 1):
-                    cx, cy = dx * (sx / 2 - 4), dy * (sy / 2 - 4)
-                    parts.append(box_mesh((cx - 2, cy - 2, 0), (cx + 2, cy + 2, hz - 3), (0.8, 0.8, 0.8),
-                                          uv_per_cm=1 / 80, layer=T.WOOD, cls=FURNITURE))
-            # things on the table
-            for _ in range(int(rng.integers(1, 4))):
-                bx, by, bz = rng.uniform(8, 25), rng.uniform(8, 25), rng.uniform(5, 30)
-                cx, cy = rng.uniform(-sx / 2 + bx, sx / 2 - bx), rng.uniform(-sy / 2 + by, sy / 2 - by)
-                parts.append(box_mesh((cx - bx / 2, cy - by / 2, hz), (cx + bx / 2, cy + by / 2, hz + bz),
-                                      rng.uniform(0.7, 1, 3), uv_per_cm=1 / 30,
-                                      layer=int(rng.choice([T.PRINT, T.CARDBOARD, T.GREEN_DECOY, T.FABRIC])),
-                                      cls=FURNITURE))
-            for part in parts:
-                meshes.append(part.transformed(R, np.array([p[0], p[1], floor_z])))
-            items.append(dict(kind=kind, xy=p.tolist()))
+            made = _table_item(rng, placer, floor_z)
         elif kind == "bucket":
-            r, hz = rng.uniform(10, 25), rng.uniform(20, 50)
-            p = free_spot(r)
-            if p is None:
-                continue
-            green = rng.random() < 0.4
-            col = np.array([0.15, 0.55, 0.2]) if green else rng.uniform(0.1, 0.9, 3)
-            meshes.append(cylinder_mesh((p[0], p[1]), r, floor_z, floor_z + hz, 32, col, uv_per_cm=1 / 40,
-                                        layer=T.PLATFORM, cls=FURNITURE))
-            items.append(dict(kind="green bucket" if green else kind, xy=p.tolist()))
-        elif kind == "shelf":
-            # a shelf against a wall with books/boxes
-            wall = int(rng.integers(4))
-            w, d, hz = rng.uniform(60, 120), rng.uniform(25, 40), rng.uniform(100, 200)
-            if wall < 2:
-                x = x0 + d / 2 + 1 if wall == 0 else x1 - d / 2 - 1
-                y = rng.uniform(y0 + w / 2, y1 - w / 2)
-                R = rot_z(np.pi / 2)
-            else:
-                y = y0 + d / 2 + 1 if wall == 2 else y1 - d / 2 - 1
-                x = rng.uniform(x0 + w / 2, x1 - w / 2)
-                R = np.eye(3)
-            p = np.array([x, y])
-            if np.linalg.norm(p) < avoid_r + 0.5 * np.hypot(w, d):
-                continue
-            placed.append((p, 0.5 * np.hypot(w, d)))
-            parts = [box_mesh((-w / 2, -d / 2, z), (w / 2, d / 2, z + 2), (0.9, 0.9, 0.9), uv_per_cm=1 / 60,
-                              layer=T.WOOD, cls=FURNITURE) for z in np.linspace(0, hz - 2, 4)]
-            for side in (-1, 1):
-                parts.append(box_mesh((side * w / 2 - 1, -d / 2, 0), (side * w / 2 + 1, d / 2, hz), (0.9, 0.9, 0.9),
-                                      uv_per_cm=1 / 60, layer=T.WOOD, cls=FURNITURE))
-            for z in np.linspace(0, hz - 2, 4)[:-1]:
-                xx = -w / 2 + 2
-                while xx < w / 2 - 6:
-                    bw = rng.uniform(2, 10)
-                    bh = rng.uniform(10, min(30, (hz - 2) / 3 - 4))
-                    parts.append(box_mesh((xx, -d / 2 + 2, z + 2), (xx + bw, d / 2 - 4, z + 2 + bh),
-                                          np.array(rng.uniform(0.2, 1.0, 3)), uv_per_cm=1 / 20,
-                                          layer=int(rng.choice([T.PRINT, T.FABRIC, T.WHITE, T.CHECKER])),
-                                          cls=FURNITURE))
-                    xx += bw + rng.uniform(0, 4)
-            for part in parts:
-                meshes.append(part.transformed(R, np.array([p[0], p[1], floor_z])))
-            items.append(dict(kind=kind, xy=p.tolist()))
+            made = _bucket_item(rng, placer, floor_z)
+        else:
+            made = _shelf_item(rng, placer, floor_z)
+        if made is not None:
+            meshes.extend(made[0])
+            items.append(made[1])
     return meshes, items
 
 

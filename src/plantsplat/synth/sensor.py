@@ -22,7 +22,6 @@ import numpy as np
 
 from plantsplat.synth.camera import smooth_noise
 
-
 _LUT_SIZE = 65536
 _LUT_SCALE = (_LUT_SIZE - 1) / 2.0  # linear values in [0, 2]
 _LUT: list[np.ndarray] = []

@@ -1,8 +1,8 @@
 """H.264 video writing with PyAV (libx264, yuv420p), atomically.
 
-Example:
-    >>> with VideoWriter("out/video.mp4", 540, 960, fps=24) as vw:   # doctest: +SKIP
-    ...     vw.write(rgb_uint8)                                      # [960, 540, 3]
+Usage:
+    with VideoWriter("out/video.mp4", 540, 960, fps=24) as vw:
+        vw.write(rgb_uint8)                                      # [960, 540, 3]
 """
 
 from __future__ import annotations

@@ -26,7 +26,8 @@ class TrainConfig:
     backend: Literal["auto", "cpu", "gsplat"] = "auto"
     """Rasterizer: auto = gsplat with CUDA, else the numba CPU backend."""
     preset: Literal["auto", "cpu", "paper"] = "auto"
-    """Recipe: cpu = few iterations, resolution schedule, foreground crops; paper = 30k iterations (gsplat). auto = paper on CUDA, cpu otherwise."""
+    """Recipe: cpu = few iterations, resolution schedule, foreground crops; paper = 30k iterations (gsplat).
+    auto = paper on CUDA, cpu otherwise."""
     iterations: int | None = None
     """Training steps (cpu preset: 2000, paper: 30000)."""
     test_fraction: float = 0.4
@@ -60,8 +61,6 @@ class TrainConfig:
     """Compute PSNR/SSIM/LPIPS, render FPS and memory on the test views after training."""
     lpips_weights: Path | None = None
     """LPIPS(alex) weights file (default: $PLANTSPLAT_LPIPS_WEIGHTS, the lpips package, ../shared/weights)."""
-    force: bool = False
-    """Retrain from scratch even if a finished model or checkpoint exists (files are overwritten one by one)."""
     train_dir: Path | None = None
     """Where split, checkpoints and the model go (default WS/train)."""
     metrics_path: Path | None = None
@@ -77,7 +76,7 @@ class TrainConfig:
             mode=self.mode,
             backend=backend,
             preset=preset,
-            iterations=self.iterations or (30_000 if paper else 2000),
+            iterations=self.iterations if self.iterations is not None else (30_000 if paper else 2000),
             sh_degree=self.sh_degree if self.sh_degree is not None else (3 if paper else 2),
             max_resolution=self.max_resolution if self.max_resolution is not None else (0 if paper else 960),
             num_downscales=self.num_downscales if self.num_downscales is not None else 2,

@@ -5,11 +5,10 @@ Cameras are pinhole after loading: images and masks of distorted cameras (OPENCV
 ...) are undistorted with OpenCV onto the same intrinsics. Poses are world->camera in OpenCV axes
 (x right, y down, z forward), in the workspace's calibrated frame (cm, z up).
 
-Example:
-    >>> from plantsplat.workspace import Workspace
-    >>> scene = load_scene(Workspace("ws/plant_01"), need_masks=True)  # doctest: +SKIP
-    >>> scene.views[0].image.shape  # doctest: +SKIP
-    (540, 960, 3)
+Usage:
+    from plantsplat.workspace import Workspace
+    scene = load_scene(Workspace("ws/plant_01"), need_masks=True)
+    scene.views[0].image.shape
 """
 
 from __future__ import annotations
@@ -118,21 +117,13 @@ def _cameras_from_transforms(path: Path) -> dict[str, View]:
     return views
 
 
-def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """x, y, z and (optional) red, green, blue of a PLY's vertices."""
-    from plyfile import PlyData
+def sparse_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """x, y, z [N, 3] and colours [N, 3] uint8 (grey where the PLY has none) of a point-cloud PLY."""
+    from plantsplat.ply import read_point_cloud
 
-    try:
-        v = PlyData.read(str(path))["vertex"]
-    except Exception as exc:
-        raise PlantsplatError(f"{path}: unreadable PLY ({exc}); re-run `plantsplat poses`") from exc
-    pts = np.stack([v["x"], v["y"], v["z"]], -1).astype(np.float64)
-    names = v.data.dtype.names
-    if all(c in names for c in ("red", "green", "blue")):
-        cols = np.stack([v["red"], v["green"], v["blue"]], -1).astype(np.uint8)
-    else:
-        cols = np.full((len(pts), 3), 128, np.uint8)
-    return pts, cols
+    cloud = read_point_cloud(path, "re-run `plantsplat poses`")
+    cols = cloud["rgb"] if cloud["rgb"] is not None else np.full((len(cloud["xyz"]), 3), 128, np.uint8)
+    return cloud["xyz"], cols
 
 
 def _undistort(img: np.ndarray, view: View, nearest: bool) -> np.ndarray:
@@ -144,15 +135,28 @@ def _undistort(img: np.ndarray, view: View, nearest: bool) -> np.ndarray:
     return cv2.remap(img, m1, m2, cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
 
-def load_scene(ws: Workspace, need_masks: bool, load_images: bool = True) -> Scene:
+def excluded_frames(ws: Workspace) -> dict[str, str]:
+    """Frames the segment stage found no plant in (``segment.json``'s ``excluded``): ``{name: reason}``."""
+    if not ws.segment_json.is_file():
+        return {}
+    return {e["name"]: e.get("reason", "") for e in read_json(ws.segment_json).get("excluded", [])}
+
+
+def load_scene(ws: Workspace, need_masks: bool, load_images: bool = True, skip_excluded: bool = False) -> Scene:
     """Cameras, undistorted images and masks, and SfM points of a workspace.
 
     Poses come from ``sparse/0`` when present, else ``transforms.json``. Frames without a pose are
     skipped with a warning; a mask that is missing or of another size is an error when
     ``need_masks`` (object mode), else masks are loaded when present (for PBR evaluation).
+    ``skip_excluded``: leave out the frames in which the segment stage found no plant.
     """
     ws.require(ws.images_dir, "frames")
     names = ws.image_names()
+    if skip_excluded:
+        excluded = excluded_frames(ws)
+        if excluded:
+            log.info("%d frame(s) without a plant are left out (%s)", len(excluded), ", ".join(sorted(excluded)[:5]))
+        names = [n for n in names if n not in excluded]
     if not names:
         raise PlantsplatError(f"{ws.images_dir}: no images; run `plantsplat frames` first")
     if ws.sparse_dir.is_dir() and any(ws.sparse_dir.iterdir()):
@@ -165,7 +169,7 @@ def load_scene(ws: Workspace, need_masks: bool, load_images: bool = True) -> Sce
     else:
         raise PlantsplatError(f"{ws.root}: no camera poses (sparse/0 or transforms.json); run `plantsplat poses {ws.root}` first")
     if len(pts) == 0 and ws.sparse_points_ply.is_file():
-        pts, cols = read_ply_points(ws.sparse_points_ply)
+        pts, cols = sparse_points(ws.sparse_points_ply)
 
     posed = [n for n in names if n in cams]
     unposed = [n for n in names if n not in cams]

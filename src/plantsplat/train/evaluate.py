@@ -23,16 +23,16 @@ background ``B``:
   compares those masks with the test frames' masks. A render in which the segmenter finds nothing is
   scored as all background; None, with ``pbr_segmented_error``, where the segmenter fails outright.
 
-Example:
-    >>> m = evaluate_workspace(Workspace("ws/plant_01"))  # doctest: +SKIP
-    >>> m["composite"]["psnr"]  # doctest: +SKIP
-    31.2
+Usage:
+    m = evaluate_workspace(Workspace("ws/plant_01"))
+    m["composite"]["psnr"]
 """
 
 from __future__ import annotations
 
 import resource
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -54,17 +54,108 @@ def _mean(xs):
     return float(np.mean(xs)) if xs else None
 
 
-def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_path: Path | None = None,
-                       lpips_weights: Path | None = None, backend: str = "auto", train_summary: dict | None = None,
-                       scene: D.Scene | None = None, fps_repeats: int = 1) -> dict:
-    """Evaluate the finished model of ``ws`` on its test views and write ``metrics.json``."""
-    from plantsplat.raster import resolve_backend
-    from plantsplat.train.trainer import ImageCache, _occluders_from, load_model, render
+@dataclass
+class _Evaluation:
+    """What scoring a test view needs: the model on its device, the views and their images, LPIPS."""
 
-    ws = ws if isinstance(ws, Workspace) else Workspace(ws)
+    params: object
+    views: dict
+    cache: object
+    net: object
+    sh: int
+    backend: str
+    device: torch.device
+    object_mode: bool
+    occ: object
+    bg: torch.Tensor
+
+
+def _render_view(ev: _Evaluation, name: str, fps_repeats: int):
+    """Render test view ``name`` over the background. Returns ``(pred, img, alpha, viewmat, K, w, h, seconds)``."""
+    from plantsplat.train.render import render
+
+    img, alpha, K, w, h = ev.cache.get(name, 1)
+    viewmat = torch.tensor(ev.views[name].viewmat, dtype=torch.float32, device=ev.device)
+    t0 = time.perf_counter()
+    for _ in range(fps_repeats):
+        out = render(ev.params, viewmat, K, w, h, ev.sh, ev.backend, ev.occ, ev.bg.to(ev.device))
+    if ev.device.type == "cuda":
+        torch.cuda.synchronize()
+    seconds = (time.perf_counter() - t0) / fps_repeats
+    color, out_alpha = out.color.cpu(), out.alpha.cpu()
+    img, alpha = img.cpu(), None if alpha is None else alpha.cpu()
+    pred = (color + (1 - out_alpha) * ev.bg).clamp(0, 1)  # [h, w, 3]
+    return pred, img, alpha, viewmat, K, w, h, seconds
+
+
+def _score_view(ev: _Evaluation, name: str, pred, img, alpha, viewmat, K, w, h, save_dir: Path | None) -> dict:
+    """One test view's row: composite, foreground and (full mode) PBR scores; its render saved to ``save_dir``."""
+    from plantsplat.train.render import render
+
+    bg = ev.bg
+    row = {"name": name}
+    gt_fg = img * alpha + (1 - alpha) * bg if alpha is not None else None  # [h, w, 3]
+    gt = gt_fg if (ev.object_mode and gt_fg is not None) else img
+    if ev.object_mode and alpha is not None:
+        row["mask_agreement"] = mask_agreement(render(ev.params, viewmat, K, w, h, 0, ev.backend).alpha.cpu(), alpha)
+    if save_dir is not None:
+        stem = Path(name).stem
+        write_image_atomic(save_dir / f"{stem}_render.png", _to_u8(pred))
+        write_image_atomic(save_dir / f"{stem}_gt.png", _to_u8(gt))
+    row["composite"] = {"psnr": float(psnr(pred, gt)), "ssim": float(ssim(pred, gt)), "lpips": lpips(ev.net, pred, gt)}
+    if alpha is not None and float(alpha.sum()) > 0:
+        pred_m = pred * alpha + (1 - alpha) * bg
+        x0, y0, x1, y1 = _box(alpha)
+        row["foreground"] = foreground_scores(pred, gt_fg, alpha)
+        row["foreground"]["lpips"] = lpips(ev.net, pred_m[y0:y1, x0:x1], gt_fg[y0:y1, x0:x1])
+        if not ev.object_mode:
+            row["pbr"] = {"psnr": float(psnr(pred_m, gt_fg)), "ssim": float(ssim(pred_m, gt_fg)),
+                          "lpips": lpips(ev.net, pred_m, gt_fg)}
+    return row
+
+
+def _score_segmented_pbr(ws: Workspace, ev: _Evaluation, per_view: list[dict], pbr_renders: dict) -> str | None:
+    """The paper's PBR: each test render segmented as the frames were, clipped by its own mask and scored.
+    Adds ``pbr_segmented`` to the rows; returns the segmenter's error, if any."""
+    from plantsplat.segment.scores import mask_iou
+
+    seg_masks, error = segment_renders(ws, pbr_renders)
+    bg = ev.bg
+    for row in per_view if seg_masks else ():
+        img, alpha = (t.cpu() for t in ev.cache.get(row["name"], 1)[:2])
+        gt_fg = img * alpha + (1 - alpha) * bg
+        m = torch.from_numpy(seg_masks[row["name"]]).float()[..., None]  # [h, w, 1] in {0, 1}
+        pred = torch.from_numpy(pbr_renders[row["name"]]).float() / 255.0
+        pred_m = pred * m + (1 - m) * bg
+        row["pbr_segmented"] = {"psnr": float(psnr(pred_m, gt_fg)), "ssim": float(ssim(pred_m, gt_fg)),
+                                "lpips": lpips(ev.net, pred_m, gt_fg), "mask_iou": mask_iou(alpha > 0.5, m > 0.5)}
+    return error
+
+
+_AGGREGATED = ("psnr", "ssim", "lpips", "psnr_interior", "mask_iou", "iou", "mask_rendered", "render_in_mask")
+
+
+def _aggregate(per_view: list[dict], kind: str) -> dict | None:
+    rows = [r[kind] for r in per_view if kind in r]
+    if not rows:
+        return None
+    return {k: _mean([r.get(k) for r in rows]) for k in _AGGREGATED if any(k in r for r in rows)}
+
+
+def _saved_views(names: list[str]) -> set[str]:
+    """A few test views, evenly spaced, saved next to their ground truth for the report."""
+    n_saved = min(8, len(names))
+    return {names[int(round(i * (len(names) - 1) / max(1, n_saved - 1)))] for i in range(n_saved)}
+
+
+def _evaluation(ws: Workspace, train_dir, lpips_weights, backend: str, scene):
+    """The model, its test views and what scoring them needs. Returns ``(ev, names, cfg, split, scene, scale)``."""
+    from plantsplat.raster import resolve_backend
+    from plantsplat.train.checkpoint import load_model
+    from plantsplat.train.render import ImageCache, occluders_from
+
     params, extra = load_model(ws, train_dir)
-    cfg = extra["config"]
-    split = extra["split"]
+    cfg, split = extra["config"], extra["split"]
     backend = resolve_backend(backend)
     if not split["test"]:
         log.warning("no test views in the split; metrics are computed on the training views")
@@ -79,93 +170,56 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
     base_scale = min(1.0, cfg["max_resolution"] / max_side) if cfg["max_resolution"] else 1.0
     device = torch.device("cuda" if backend == "gsplat" else "cpu")
     params = params.to(device)
-    cache = ImageCache([views[n] for n in names], base_scale, device)
-    net = load_lpips(lpips_weights)
-    sh = sh_degree_of(params)
     object_mode = cfg["mode"] == "object"
-    bg = torch.zeros(3)
-    occ = _occluders_from(extra.get("occluders"), device) if object_mode else None  # drawn in bg, as in training
+    ev = _Evaluation(
+        params=params, views=views, cache=ImageCache([views[n] for n in names], base_scale, device),
+        net=load_lpips(lpips_weights), sh=sh_degree_of(params), backend=backend, device=device,
+        object_mode=object_mode, bg=torch.zeros(3),
+        occ=occluders_from(extra.get("occluders"), device) if object_mode else None,  # drawn in bg, as in training
+    )
+    return ev, names, cfg, split, scene, base_scale
+
+
+def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_path: Path | None = None,
+                       lpips_weights: Path | None = None, backend: str = "auto", train_summary: dict | None = None,
+                       scene: D.Scene | None = None, fps_repeats: int = 1) -> dict:
+    """Evaluate the finished model of ``ws`` on its test views and write ``metrics.json``."""
+    ws = ws if isinstance(ws, Workspace) else Workspace(ws)
+    ev, names, cfg, split, scene, base_scale = _evaluation(ws, train_dir, lpips_weights, backend, scene)
     per_view = []
     pbr_renders: dict[str, np.ndarray] = {}  # full mode: test renders (uint8) for the segmented PBR
     render_seconds = 0.0
     n_px = 0
-    # a few test views, evenly spaced, are saved next to their ground truth for the report
     renders_dir = Path(train_dir or ws.train_dir) / "renders"
-    n_saved = min(8, len(names))
-    saved = {names[int(round(i * (len(names) - 1) / max(1, n_saved - 1)))] for i in range(n_saved)}
+    saved = _saved_views(names)
     with torch.no_grad():
         for name in progress(names, "evaluating test views"):
-            img, alpha, K, w, h = cache.get(name, 1)
-            viewmat = torch.tensor(views[name].viewmat, dtype=torch.float32, device=device)
-            t0 = time.perf_counter()
-            for _ in range(fps_repeats):
-                out = render(params, viewmat, K, w, h, sh, backend, occ, bg.to(device))
-            if device.type == "cuda":
-                torch.cuda.synchronize()
-            render_seconds += (time.perf_counter() - t0) / fps_repeats
-            out.color, out.alpha = out.color.cpu(), out.alpha.cpu()
-            img, alpha = img.cpu(), None if alpha is None else alpha.cpu()
+            pred, img, alpha, viewmat, K, w, h, seconds = _render_view(ev, name, fps_repeats)
+            render_seconds += seconds
             n_px = w * h
-            pred = (out.color + (1 - out.alpha) * bg).clamp(0, 1)  # [h, w, 3]
-            row = {"name": name}
-            if alpha is not None:
-                gt_fg = img * alpha + (1 - alpha) * bg  # [h, w, 3]
-            else:
-                gt_fg = None
-            gt = gt_fg if (object_mode and gt_fg is not None) else img
-            if name in saved:
-                stem = Path(name).stem
-                write_image_atomic(renders_dir / f"{stem}_render.png", _to_u8(pred))
-                write_image_atomic(renders_dir / f"{stem}_gt.png", _to_u8(gt))
-            row["composite"] = {"psnr": float(psnr(pred, gt)), "ssim": float(ssim(pred, gt)),
-                                "lpips": lpips(net, pred, gt)}
-            if alpha is not None and float(alpha.sum()) > 0:
-                pred_m = pred * alpha + (1 - alpha) * bg
-                x0, y0, x1, y1 = _box(alpha)
-                row["foreground"] = foreground_scores(pred, gt_fg, alpha)
-                row["foreground"]["lpips"] = lpips(net, pred_m[y0:y1, x0:x1], gt_fg[y0:y1, x0:x1])
-                if not object_mode:
-                    row["pbr"] = {"psnr": float(psnr(pred_m, gt_fg)), "ssim": float(ssim(pred_m, gt_fg)),
-                                  "lpips": lpips(net, pred_m, gt_fg)}
-                    pbr_renders[name] = _to_u8(pred)
+            row = _score_view(ev, name, pred, img, alpha, viewmat, K, w, h, renders_dir if name in saved else None)
+            if "pbr" in row:
+                pbr_renders[name] = _to_u8(pred)
             per_view.append(row)
-    pbr_segmented_error = None
-    if pbr_renders:
-        from plantsplat.segment import mask_iou
-
-        seg_masks, pbr_segmented_error = segment_renders(ws, pbr_renders)
-        for row in per_view if seg_masks else ():
-            img, alpha = (t.cpu() for t in cache.get(row["name"], 1)[:2])
-            gt_fg = img * alpha + (1 - alpha) * bg
-            m = torch.from_numpy(seg_masks[row["name"]]).float()[..., None]  # [h, w, 1] in {0, 1}
-            pred = torch.from_numpy(pbr_renders[row["name"]]).float() / 255.0
-            pred_m = pred * m + (1 - m) * bg
-            row["pbr_segmented"] = {"psnr": float(psnr(pred_m, gt_fg)), "ssim": float(ssim(pred_m, gt_fg)),
-                                    "lpips": lpips(net, pred_m, gt_fg), "mask_iou": mask_iou(alpha > 0.5, m > 0.5)}
-
-    def agg(kind):
-        rows = [r[kind] for r in per_view if kind in r]
-        if not rows:
-            return None
-        return {k: _mean([r.get(k) for r in rows]) for k in ("psnr", "ssim", "lpips", "psnr_interior", "mask_iou")
-                if any(k in r for r in rows)}
+    pbr_segmented_error = _score_segmented_pbr(ws, ev, per_view, pbr_renders) if pbr_renders else None
 
     summary = dict(train_summary or {})
     summary.pop("metrics", None)
     metrics = {
         "mode": cfg["mode"],
-        "backend": backend,
+        "backend": ev.backend,
         "n_test_views": len(names),
         "split": split.get("method"),
         "resolution": [int(round(scene.views[0].width * base_scale)), int(round(scene.views[0].height * base_scale))],
-        "background": bg.tolist(),
-        "composite": agg("composite"),
-        "foreground": agg("foreground"),
-        "pbr": agg("pbr"),
-        "pbr_segmented": agg("pbr_segmented"),
+        "background": ev.bg.tolist(),
+        "composite": _aggregate(per_view, "composite"),
+        "foreground": _aggregate(per_view, "foreground"),
+        "pbr": _aggregate(per_view, "pbr"),
+        "pbr_segmented": _aggregate(per_view, "pbr_segmented"),
         "pbr_segmented_error": pbr_segmented_error,
-        "lpips_weights": None if net is None else "loaded",
-        "n_gaussians": int(params["means"].shape[0]),
+        "mask_agreement": _aggregate(per_view, "mask_agreement"),
+        "lpips_weights": None if ev.net is None else "loaded",
+        "n_gaussians": int(ev.params["means"].shape[0]),
         "render_fps": len(names) / render_seconds if render_seconds > 0 else None,
         "render_megapixels": n_px / 1e6,
         "train_seconds": summary.get("train_seconds"),
@@ -179,6 +233,11 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
     if metrics_path is None:
         metrics_path = ws.metrics_json
     write_json_atomic(metrics_path, metrics)
+    _log_metrics(metrics, metrics_path)
+    return metrics
+
+
+def _log_metrics(metrics: dict, metrics_path: Path) -> None:
     c = metrics["composite"]
     f = metrics["foreground"] or {}
     log.info("test views: PSNR %.2f SSIM %.4f LPIPS %s | foreground PSNR %s SSIM %s | %.2f FPS -> %s",
@@ -188,15 +247,27 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
         if metrics[key]:
             log.info("PBR (%s): PSNR %.2f SSIM %.4f LPIPS %s", label, metrics[key]["psnr"], metrics[key]["ssim"],
                      _fmt(metrics[key]["lpips"]))
-    return metrics
+
+
+def mask_agreement(model_alpha: torch.Tensor, mask: torch.Tensor) -> dict:
+    """How a trained object model and a test frame's mask agree (``[h, w]`` or ``[h, w, 1]`` in [0, 1], cut at 0.5):
+    ``iou``, ``mask_rendered`` (the share of the mask the model draws) and ``render_in_mask`` (the share of what
+    the model draws that the mask holds). A mask that takes room or leaves out plant tissue the other views show
+    is not drawn by a model that has to agree with every view."""
+    from plantsplat.segment.scores import mask_iou
+
+    a, m = model_alpha.reshape(mask.shape[:2]) > 0.5, mask.reshape(mask.shape[:2]) > 0.5
+    both = float((a & m).sum())
+    return {"iou": mask_iou(a, m), "mask_rendered": both / max(float(m.sum()), 1.0),
+            "render_in_mask": both / max(float(a.sum()), 1.0)}
 
 
 def segment_renders(ws: Workspace, renders: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray] | None, str | None]:
     """Segment a full model's renders ``{name: [h, w, 3] uint8 RGB}`` as the workspace's frames were segmented: the
     segment stage's 3D object drawn into each test camera and refined on the render
-    (:func:`plantsplat.segment.segment_images`). Returns ``({name: [h, w] bool mask}, None)``, or
+    (:func:`plantsplat.segment.stored.segment_images`). Returns ``({name: [h, w] bool mask}, None)``, or
     ``(None, reason)`` when the workspace has no such object (masks imported, or not segmented here)."""
-    from plantsplat.segment import segment_images
+    from plantsplat.segment.stored import segment_images
 
     log.info("PBR: segmenting %d test renders of the full model, as the paper removes the background after training",
              len(renders))

@@ -16,7 +16,6 @@ Example:
 
 from __future__ import annotations
 
-import math
 import os
 from pathlib import Path
 
@@ -175,9 +174,9 @@ class LPIPS(torch.nn.Module):
 
     Inputs are ``[B, 3, H, W]`` in [-1, 1]; returns ``[B]`` distances.
 
-    Example:
-        >>> net = LPIPS.from_file("../shared/weights/lpips_alex_v0.1.pth")  # doctest: +SKIP
-        >>> float(net(x, y))  # doctest: +SKIP
+    Usage:
+        net = LPIPS.from_file("../shared/weights/lpips_alex_v0.1.pth")
+        float(net(x, y))
     """
 
     def __init__(self):
@@ -267,6 +266,3 @@ def lpips(net: LPIPS | None, pred: torch.Tensor, gt: torch.Tensor) -> float | No
     y = gt.permute(2, 0, 1)[None].float() * 2 - 1
     return float(net(x, y)[0])
 
-
-def psnr_from_mse(mse: float) -> float:
-    return -10.0 * math.log10(max(mse, 1e-12))

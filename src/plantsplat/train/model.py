@@ -25,14 +25,9 @@ Example:
 from __future__ import annotations
 
 import math
-import os
-from pathlib import Path
 
 import numpy as np
 import torch
-
-from plantsplat.errors import PlantsplatError
-from plantsplat.io import atomic_path
 
 SH_C0 = 0.28209479177387814
 
@@ -103,37 +98,6 @@ def activated(params: torch.nn.ParameterDict) -> dict[str, torch.Tensor]:
             "opacities": torch.sigmoid(params["opacities"]).detach(),
             "colors": sh_to_rgb(params["sh0"][:, 0]).clamp(0, 1).detach(),
         }
-
-
-def save_checkpoint(path: str | os.PathLike, step: int, params, optimizers, strategy_state: dict, extra: dict) -> None:
-    """Atomically save everything needed to resume training at ``step``."""
-    blob = {
-        "step": step,
-        "params": {k: v.detach().clone() for k, v in params.items()},
-        "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
-        "strategy_state": {k: (v.clone() if torch.is_tensor(v) else v) for k, v in strategy_state.items()},
-        "extra": extra,
-    }
-    try:
-        with atomic_path(path) as tmp:
-            torch.save(blob, tmp)
-    except OSError as exc:
-        raise PlantsplatError(f"{path}: could not write checkpoint ({exc}); free disk space and re-run to resume") from exc
-
-
-def load_checkpoint(path: str | os.PathLike) -> dict:
-    """Read a checkpoint written by :func:`save_checkpoint`."""
-    path = Path(path)
-    try:
-        blob = torch.load(str(path), map_location="cpu", weights_only=False)
-        _ = blob["params"]["means"]
-    except Exception as exc:
-        raise PlantsplatError(f"{path}: unreadable checkpoint ({type(exc).__name__}); delete it to train from scratch") from exc
-    return blob
-
-
-def params_from_checkpoint(blob: dict) -> torch.nn.ParameterDict:
-    return torch.nn.ParameterDict({k: torch.nn.Parameter(v.clone()) for k, v in blob["params"].items()})
 
 
 def sh_degree_of(params) -> int:

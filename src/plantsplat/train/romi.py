@@ -7,10 +7,9 @@ parallel), so the cameras come from ``metadata/images/*_rgb.json`` (world->camer
 the mask from ``*_background.png`` (plant = below 128). The result is a workspace with
 ``images/``, ``masks/``, ``rgba/`` and a nerfstudio ``transforms.json`` (no SfM points).
 
-Example:
-    >>> ws = workspace_from_romi("../shared/datasets/romi_virtual_plant_synthetic", "ws/romi", size=224)  # doctest: +SKIP
-    >>> len(ws.image_names())  # doctest: +SKIP
-    18
+Usage:
+    ws = workspace_from_romi("../shared/datasets/romi_virtual_plant_synthetic", "ws/romi", size=224)
+    len(ws.image_names())
 """
 
 from __future__ import annotations

@@ -22,18 +22,9 @@ from dataclasses import dataclass
 import torch
 
 from plantsplat.log import get_logger
+from plantsplat.raster.projection import quat_to_rotmat
 
 log = get_logger(__name__)
-
-
-def _quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    """``[N, 4]`` wxyz unit quaternions -> ``[N, 3, 3]`` rotation matrices."""
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], -1).view(-1, 3, 3)
 
 
 @torch.no_grad()
@@ -137,7 +128,7 @@ class DensityStrategy:
     def _split(self, params, optimizers, mask) -> None:
         scales = torch.exp(params["scales"][mask])  # [S, 3]
         quats = torch.nn.functional.normalize(params["quats"][mask], dim=-1)
-        R = _quat_to_rotmat(quats)  # [S, 3, 3]
+        R = quat_to_rotmat(quats)  # [S, 3, 3]
         samples = torch.einsum("sij,bsj->bsi", R, scales * torch.randn(2, *scales.shape, device=scales.device))  # [2, S, 3]
         rest = ~mask
 

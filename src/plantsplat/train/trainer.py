@@ -3,25 +3,25 @@
 Object mode (the paper, section 2.3): every step renders a training view, composites it over a
 random colour ``B`` (``C_hat = C_splat + (1 - alpha_acc) * B``) and compares it with the frame
 composited over the same ``B`` through its mask (``C = alpha_img * I + (1 - alpha_img) * B``), with
-``(1 - 0.2) * L1 + 0.2 * (1 - SSIM)``. Outside the mask the target is ``B`` itself, which changes
-every step, so the only way to match it is transparency: Gaussians there lose opacity and are
-culled below 0.1. Full mode is plain RGB 3DGS on whole frames (the paper's Splatfacto baseline);
-PBR is the full model evaluated with the masks applied after training (see :mod:`.evaluate`).
+``(1 - 0.2) * L1 + 0.2 * (1 - SSIM)`` (:mod:`plantsplat.train.loss`). Outside the mask the target is
+``B`` itself, which changes every step, so the only way to match it is transparency: Gaussians there
+lose opacity and are culled below 0.1. Full mode is plain RGB 3DGS on whole frames (the paper's
+Splatfacto baseline); PBR is the full model evaluated with the masks applied after training (see
+:mod:`plantsplat.train.evaluate`).
 
-Example:
-    >>> from plantsplat.workspace import Workspace
-    >>> summary = train_workspace(Workspace("ws/plant_01"), TrainConfig(iterations=500))  # doctest: +SKIP
-    >>> summary["n_gaussians"]  # doctest: +SKIP
-    41210
+Usage:
+    from plantsplat.workspace import Workspace
+    summary = train_workspace(Workspace("ws/plant_01"), TrainConfig(iterations=500))
+    summary["n_gaussians"]
 """
 
 from __future__ import annotations
 
 import os
 import time
-from types import SimpleNamespace
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import torch
@@ -31,150 +31,31 @@ from plantsplat.errors import PlantsplatError
 from plantsplat.io import write_json_atomic
 from plantsplat.log import get_logger, make_progress
 from plantsplat.train import data as D
-from plantsplat.train.metrics import ssim as ssim_torch
-from plantsplat.train.model import (
-    activated,
-    init_params,
+from plantsplat.train.checkpoint import (
     load_checkpoint,
-    make_optimizers,
     params_from_checkpoint,
     save_checkpoint,
+    train_paths,
+)
+from plantsplat.train.config import ResolvedConfig, TrainConfig
+from plantsplat.train.loss import (
+    MAX_NONFINITE_RUN,
+    drop_nonfinite_grads,
+    photometric_loss,
+)
+from plantsplat.train.model import init_params, make_optimizers
+from plantsplat.train.render import (
+    OCCLUDER_OPACITY,
+    OCCLUDER_SCALE,
+    ImageCache,
+    occluder_tensors,
+    occluders_from,
+    render,
 )
 from plantsplat.train.strategy import DensityStrategy
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
-
-from plantsplat.train.config import PRESETS, ResolvedConfig, TrainConfig  # noqa: E402,F401
-
-
-# ---------------------------------------------------------------------------------------------
-# images at several resolutions
-
-
-class ImageCache:
-    """Per view, per downscale factor: image ``[h, w, 3]`` and alpha ``[h, w, 1]`` float tensors."""
-
-    def __init__(self, views: list[D.View], base_scale: float, device: str | torch.device = "cpu"):
-        self.device = torch.device(device)
-        self.views = {v.name: v for v in views}
-        self.base_scale = base_scale  # full resolution -> largest training resolution
-        self._cache: dict[tuple[str, int], tuple] = {}
-        self._boxes: dict[tuple[str, int], tuple[int, int, int, int]] = {}
-
-    def box(self, name: str, down: int) -> tuple[int, int, int, int]:
-        """:func:`foreground_box` of a view's alpha at one downscale (computed once)."""
-        key = (name, down)
-        if key not in self._boxes:
-            img, alpha = self.get(name, down)[:2]
-            self._boxes[key] = foreground_box(alpha) if alpha is not None else (0, 0, img.shape[1], img.shape[0])
-        return self._boxes[key]
-
-    def get(self, name: str, down: int):
-        import cv2
-
-        key = (name, down)
-        if key not in self._cache:
-            v = self.views[name]
-            s = self.base_scale / down
-            w, h = max(1, round(v.width * s)), max(1, round(v.height * s))
-            interp = cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR
-            img = cv2.resize(v.image, (w, h), interpolation=interp) if (w, h) != (v.width, v.height) else v.image
-            img_t = torch.from_numpy(np.ascontiguousarray(img)).float() / 255.0  # [h, w, 3]
-            if v.mask is not None:
-                m = cv2.resize(v.mask, (w, h), interpolation=interp) if (w, h) != (v.width, v.height) else v.mask
-                a_t = torch.from_numpy(np.ascontiguousarray(m)).float()[..., None] / 255.0  # [h, w, 1]
-            else:
-                a_t = None
-            K = v.K.copy()
-            K[0, :] *= w / v.width
-            K[1, :] *= h / v.height
-            dev = self.device
-            self._cache[key] = (img_t.to(dev), None if a_t is None else a_t.to(dev),
-                                torch.tensor(K, dtype=torch.float32, device=dev), w, h)
-        return self._cache[key]
-
-
-def foreground_box(alpha: torch.Tensor, margin_frac: float = 0.08, min_margin: int = 8) -> tuple[int, int, int, int]:
-    """Bounding box ``(x0, y0, x1, y1)`` of ``alpha > 0`` ``[h, w, 1]`` grown by a margin; the whole
-    image when the mask is empty."""
-    h, w = alpha.shape[:2]
-    ys, xs = torch.nonzero(alpha[..., 0] > 0.01, as_tuple=True)
-    if len(xs) == 0:
-        return 0, 0, w, h
-    mx = max(min_margin, int(margin_frac * w))
-    my = max(min_margin, int(margin_frac * h))
-    x0, x1 = max(0, int(xs.min()) - mx), min(w, int(xs.max()) + 1 + mx)
-    y0, y1 = max(0, int(ys.min()) - my), min(h, int(ys.max()) + 1 + my)
-    return x0, y0, x1, y1
-
-
-def photometric_loss(color: torch.Tensor, alpha: torch.Tensor, bg: torch.Tensor, gt: torch.Tensor,
-                     ssim_lambda: float, gt_alpha: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """The training loss of a render (``color`` ``[H, W, 3]``, ``alpha`` ``[H, W, 1]``) composited
-    over ``bg`` ``[3]``: ``(1 - l) L1 + l (1 - SSIM)`` against ``gt``, and the mean squared error
-    (detached, for the progress bar's PSNR). With ``gt_alpha`` (object mode) the target is ``gt``
-    composited over the same background through it, ``gt gt_alpha + (1 - gt_alpha) bg``.
-
-    On the CPU: the fused numba kernels of :mod:`plantsplat.raster.ssim` (compositing, L1, SSIM and
-    their gradients in two passes; same value and gradients as the PyTorch composition, tested). The
-    PyTorch version took about half of a training step at 896 px, and its elementwise operations
-    alone a fifth. Elsewhere (CUDA, or a ``gt`` or ``bg`` that needs a gradient, which the fused
-    kernels do not give): the PyTorch composition with :func:`plantsplat.train.metrics.ssim`.
-    """
-    if (color.device.type == "cpu" and gt.device.type == "cpu" and not gt.requires_grad and not bg.requires_grad
-            and color.shape[-1] == 3 and (gt_alpha is None or not gt_alpha.requires_grad)):
-        from plantsplat.raster.ssim import photometric_loss_cpu
-
-        return photometric_loss_cpu(color, alpha, bg, gt, ssim_lambda, gt_alpha)
-    if gt_alpha is not None:
-        gt = gt * gt_alpha + (1.0 - gt_alpha) * bg
-    pred = color + (1.0 - alpha) * bg
-    loss = (1 - ssim_lambda) * (pred - gt).abs().mean() + ssim_lambda * (1 - ssim_torch(pred, gt))
-    return loss, ((pred.detach() - gt.detach()) ** 2).mean()
-
-
-# Occluders start opaque and at half the model's initial size (half the mean distance to their 3 nearest
-# SfM neighbours): they stand for solid pot and soil. Pixels the plant leaves partly transparent go on
-# through the occluders behind it, and wide, half-transparent occluders made every such pixel composite
-# many of them: at 0.5 opacity and full size they added 75 % to the composited pairs, at 0.99 and half
-# size 47 % (my script, seed 0 of the training benchmark: 2000 steps 169 s -> 153 s, whole-frame and
-# foreground PSNR within 0.1 dB).
-_OCC_OPACITY = 0.99
-_OCC_SCALE = 0.5
-
-
-def render(params, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int, sh_degree: int, backend: str,
-           occluders=None, bg: torch.Tensor | None = None):
-    """Rasterize the model's Gaussians (activating the parameters) into one view.
-
-    ``occluders`` (object mode; means, scales, quats, opacities like ``params``) are drawn after the
-    model's Gaussians in the list, in the background colour ``bg`` ``[3]``: composited over ``bg``
-    they look like background, but hide what lies behind them. The result's per-Gaussian outputs
-    (``means2d``, ``radii``) then cover the model's Gaussians first, the occluders after them. With
-    occluders, use the result only composited over ``bg``: the cpu backend drops occluders with nothing
-    of the model behind them (``trailing_background``), which leaves that composite and every gradient
-    as they were but not ``alpha`` alone.
-    """
-    from plantsplat.raster import rasterize
-    from plantsplat.train.model import rgb_to_sh
-
-    k = (sh_degree + 1) ** 2
-    colors = torch.cat([params["sh0"], params["shN"][:, : k - 1]], dim=1)  # [N, k, 3]
-    means, quats, scales, opac = params["means"], params["quats"], params["scales"], params["opacities"]
-    m = 0
-    if occluders is not None and occluders["means"].shape[0]:
-        m = occluders["means"].shape[0]
-        occ_col = torch.zeros(m, k, 3, device=colors.device, dtype=colors.dtype)
-        occ_col[:, 0] = rgb_to_sh(bg.to(colors.dtype))  # colour = 0.5 + C0 sh0 = bg; higher bands 0
-        colors = torch.cat([colors, occ_col])
-        means = torch.cat([means, occluders["means"]])
-        quats = torch.cat([quats, occluders["quats"]])
-        scales = torch.cat([scales, occluders["scales"]])
-        opac = torch.cat([opac, occluders["opacities"]])
-    # occluders with nothing of the model behind them change neither the composite over bg nor a gradient
-    return rasterize(means, quats, torch.exp(scales), torch.sigmoid(opac), colors, viewmat, K, width, height,
-                     sh_degree=sh_degree, backend=backend, trailing_background=m)
 
 
 class _ModelPart:
@@ -193,311 +74,250 @@ def scene_scale(views: list[D.View]) -> float:
     return float(np.linalg.norm(c - c.mean(0), axis=1).max() * 1.1) or 1.0
 
 
-# ---------------------------------------------------------------------------------------------
-# the loop
+@dataclass
+class _Setup:
+    """What a run trains on: the views, the split, the schedule and the image cache."""
+
+    scene: D.Scene
+    split: dict
+    train_views: list
+    sscale: float
+    sched: dict
+    strategy: DensityStrategy
+    base_scale: float
+    device: torch.device
+    cache: ImageCache
 
 
-def _paths(ws: Workspace, cfg: TrainConfig) -> dict[str, Path]:
-    tdir = Path(cfg.train_dir) if cfg.train_dir else ws.train_dir
-    return {
-        "dir": tdir,
-        "split": tdir / "split.json",
-        "ckpt": tdir / "checkpoint.pt",
-        "model": tdir / "model.pt",
-        "config": tdir / "config.json",
-        "metrics": Path(cfg.metrics_path) if cfg.metrics_path else ws.metrics_json,
-    }
+@dataclass
+class _State:
+    """What a run changes as it goes (all of it in each checkpoint)."""
+
+    params: torch.nn.ParameterDict
+    optimizers: dict
+    strategy_state: dict
+    occ: torch.nn.ParameterDict | None
+    rng: np.random.Generator
+    start: int = 0
+    elapsed0: float = 0.0
+    resumed: bool = False
+    nonfinite: dict = field(default_factory=lambda: {"steps": 0, "gaussians": 0})
 
 
-def model_path(ws: Workspace, train_dir: Path | None = None) -> Path:
-    return (Path(train_dir) if train_dir else ws.train_dir) / "model.pt"
+def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None = None, resume: bool = False) -> dict:
+    """Train a 3DGS model of a workspace; returns a summary.
 
-
-def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None = None) -> dict:
-    """Train (or resume, or skip when finished) a 3DGS model of a workspace; returns a summary.
-
+    ``resume``: go on from ``train/checkpoint.pt`` of an interrupted run with the same options and
+    inputs (:func:`plantsplat.pipeline.train_stage` decides); otherwise training starts afresh.
     Writes ``train/split.json``, ``train/checkpoint.pt`` (periodically, atomically),
     ``train/model.pt`` (final), ``train/config.json`` and, with ``cfg.evaluate``, ``metrics.json``.
 
-    Example:
-        >>> summary = train_workspace("ws/plant_01", TrainConfig(mode="object"))  # doctest: +SKIP
+    Usage:
+        summary = train_workspace("ws/plant_01", TrainConfig(mode="object"))
     """
     ws = ws if isinstance(ws, Workspace) else Workspace(ws)
     cfg = cfg or TrainConfig()
     rc = cfg.resolved()
-    paths = _paths(ws, cfg)
+    paths = train_paths(ws, cfg)
     torch.set_num_threads(cfg.threads or os.cpu_count() or 1)  # torch's ops; numba keeps its own
     note = plantsplat.omp_wait_policy_note()
     if note:
         log.warning("%s", note)
+    if not resume:  # a fresh run: nothing of an earlier one is reused
+        for key in ("ckpt", "model", "split"):
+            paths[key].unlink(missing_ok=True)
+    setup = _setup(ws, cfg, rc, paths)
+    st = _resume(paths, rc, setup) if resume and paths["ckpt"].is_file() else _initial_state(cfg, rc, setup)
+    write_json_atomic(paths["config"], {"requested": _jsonable(asdict(cfg)), "resolved": asdict(rc)})
+    t_start, cpu_start = time.perf_counter(), time.process_time()
+    loss_ema, psnr_ema = _loop(st, setup, rc, cfg, paths, t_start)
+    return _finish(ws, cfg, rc, paths, setup, st, time.perf_counter() - t_start, time.process_time() - cpu_start,
+                   loss_ema, psnr_ema)
 
-    if paths["model"].is_file() and not cfg.force:
-        blob = load_checkpoint(paths["model"])
-        done = blob["extra"].get("config", {})
-        if done.get("mode") != rc.mode:
-            raise PlantsplatError(
-                f"{paths['model']}: holds a finished {done.get('mode')!r}-mode model; pass --force to retrain in "
-                f"{rc.mode!r} mode, or --train-dir to keep both"
-            )
-        log.info("%s: finished model found (%d steps); skipping training (--force retrains)",
-                 paths["model"], blob["step"])
-        summary = dict(blob["extra"].get("summary", {}))
-        if cfg.evaluate and not paths["metrics"].is_file():
-            from plantsplat.train.evaluate import evaluate_workspace
 
-            summary["metrics"] = evaluate_workspace(ws, train_dir=paths["dir"], metrics_path=paths["metrics"],
-                                                    lpips_weights=cfg.lpips_weights, backend=rc.backend,
-                                                    train_summary=summary)
-        return summary
-
-    object_mode = rc.mode == "object"
-    scene = D.load_scene(ws, need_masks=object_mode)
-    names = [v.name for v in scene.views]
-    split = D.load_or_make_split(paths["split"], names, cfg.test_fraction, cfg.test_every)
+def _setup(ws: Workspace, cfg: TrainConfig, rc: ResolvedConfig, paths: dict) -> _Setup:
+    scene = D.load_scene(ws, need_masks=rc.mode == "object", skip_excluded=True)
+    split = D.load_or_make_split(paths["split"], [v.name for v in scene.views], cfg.test_fraction, cfg.test_every)
     train_views = [v for v in scene.views if v.name in set(split["train"])]
     if not train_views:
         raise PlantsplatError(f"{paths['split']}: no training frame has a pose; delete it and re-run")
     log.info("%d training and %d test frames (%s); poses from %s", len(train_views), len(split["test"]),
              split["method"], scene.pose_source)
-
-    sscale = scene_scale(scene.views)
     sched = rc.schedule()
     strategy = DensityStrategy(
         prune_opa=0.1, refine_start_iter=sched["refine_start"], refine_stop_iter=sched["refine_stop"],
-        refine_every=sched["refine_every"], reset_every=sched["reset_every"],
-        max_gaussians=rc.max_gaussians,
+        refine_every=sched["refine_every"], reset_every=sched["reset_every"], max_gaussians=rc.max_gaussians,
     )
     rc.strategy = asdict(strategy)
     max_side = max(max(v.width, v.height) for v in scene.views)
     base_scale = min(1.0, rc.max_resolution / max_side) if rc.max_resolution else 1.0
     device = torch.device("cuda" if rc.backend == "gsplat" else "cpu")
-    cache = ImageCache(scene.views, base_scale, device)
+    return _Setup(scene, split, train_views, scene_scale(scene.views), sched, strategy, base_scale, device,
+                  ImageCache(scene.views, base_scale, device))
 
+
+def _initial_state(cfg: TrainConfig, rc: ResolvedConfig, s: _Setup) -> _State:
     rng = np.random.default_rng(rc.seed)
     torch.manual_seed(rc.seed)
-    start = 0
-    resumed = False
-    nonfinite = {"steps": 0, "gaussians": 0}  # steps whose gradients had NaN/inf entries (see _drop_nonfinite_grads)
-    if paths["ckpt"].is_file() and not cfg.force:
-        blob = load_checkpoint(paths["ckpt"])
-        old = blob["extra"].get("config", {})
-        if old.get("mode") != rc.mode or old.get("iterations") != rc.iterations:
-            raise PlantsplatError(
-                f"{paths['ckpt']}: an unfinished {old.get('mode')!r}-mode run of {old.get('iterations')} steps; "
-                "re-run with the same options to resume it, or pass --force to start again"
-            )
-        params = params_from_checkpoint(blob).to(device)
-        optimizers = make_optimizers(params, _lrs(rc, sscale))
-        for k, o in optimizers.items():
-            o.load_state_dict(blob["optimizers"][k])
-        state = dict(blob["strategy_state"])
-        start = int(blob["step"])
-        elapsed0 = float(blob["extra"].get("train_seconds", 0.0))
-        if "rng" in blob["extra"]:
-            rng.bit_generator.state = blob["extra"]["rng"]
-        resumed = True
-        occ = _occluders_from(blob["extra"].get("occluders"), device)
-        nonfinite.update(blob["extra"].get("nonfinite_grads", {}))
-        log.info("resuming %s from step %d of %d (%d Gaussians)", paths["ckpt"], start, rc.iterations,
-                 params["means"].shape[0])
-    else:
-        pts, cols, how = D.initial_points(scene, train_views, object_mode, cfg.init_points, rng)
-        params = init_params(pts, cols, rc.sh_degree, rc.init_opacity, seed=rc.seed).to(device)
-        optimizers = make_optimizers(params, _lrs(rc, sscale))
-        state = strategy.initialize_state(sscale)
-        elapsed0 = 0.0
-        log.info("initialised %d Gaussians from %s; scene scale %.1f", len(pts), how, sscale)
-        occ = None
-        if object_mode and cfg.occluders:
-            opts = D.occluder_points(scene, train_views)
-            if len(opts) >= 20:
-                occ = _occluders_from(_tensors(init_params(opts, np.full((len(opts), 3), 0.5), 0, _OCC_OPACITY,
-                                                           init_scale=_OCC_SCALE, seed=rc.seed + 1)), device)
-                log.info("%d occluders from the SfM points the masks leave out near the object", len(opts))
-    write_json_atomic(paths["config"], {"requested": _jsonable(asdict(cfg)), "resolved": asdict(rc)})
+    object_mode = rc.mode == "object"
+    pts, cols, how = D.initial_points(s.scene, s.train_views, object_mode, cfg.init_points, rng)
+    params = init_params(pts, cols, rc.sh_degree, rc.init_opacity, seed=rc.seed).to(s.device)
+    log.info("initialised %d Gaussians from %s; scene scale %.1f", len(pts), how, s.sscale)
+    occ = None
+    if object_mode and cfg.occluders:
+        opts = D.occluder_points(s.scene, s.train_views)
+        if len(opts) >= 20:
+            occ = occluders_from(occluder_tensors(init_params(opts, np.full((len(opts), 3), 0.5), 0, OCCLUDER_OPACITY,
+                                                              init_scale=OCCLUDER_SCALE, seed=rc.seed + 1)), s.device)
+            log.info("%d occluders from the SfM points the masks leave out near the object", len(opts))
+    return _State(params, make_optimizers(params, _lrs(rc, s.sscale)), s.strategy.initialize_state(s.sscale), occ, rng)
 
-    extra_base = {"config": asdict(rc), "split": split}
+
+def _resume(paths: dict, rc: ResolvedConfig, s: _Setup) -> _State:
+    rng = np.random.default_rng(rc.seed)
+    torch.manual_seed(rc.seed)
+    blob = load_checkpoint(paths["ckpt"])
+    old = blob["extra"].get("config", {})
+    if old.get("mode") != rc.mode or old.get("iterations") != rc.iterations:
+        raise PlantsplatError(
+            f"{paths['ckpt']}: an unfinished {old.get('mode')!r}-mode run of {old.get('iterations')} steps; "
+            "re-run with the same options to resume it, or pass --force to start again"
+        )
+    params = params_from_checkpoint(blob).to(s.device)
+    optimizers = make_optimizers(params, _lrs(rc, s.sscale))
+    for k, o in optimizers.items():
+        o.load_state_dict(blob["optimizers"][k])
+    if "rng" in blob["extra"]:
+        rng.bit_generator.state = blob["extra"]["rng"]
+    st = _State(params, optimizers, dict(blob["strategy_state"]), occluders_from(blob["extra"].get("occluders"), s.device),
+                rng, start=int(blob["step"]), elapsed0=float(blob["extra"].get("train_seconds", 0.0)), resumed=True)
+    st.nonfinite.update(blob["extra"].get("nonfinite_grads", {}))
+    log.info("resuming %s from step %d of %d (%d Gaussians)", paths["ckpt"], st.start, rc.iterations,
+             params["means"].shape[0])
+    return st
+
+
+def _loop(st: _State, s: _Setup, rc: ResolvedConfig, cfg: TrainConfig, paths: dict, t_start: float):
+    """The training steps from ``st.start``; returns the final smoothed loss and PSNR."""
     occ_opt = None
-    if occ is not None:
-        lr = _lrs(rc, sscale)
-        occ_opt = make_optimizers(occ, {k: lr[k] for k in occ.keys()})
+    if st.occ is not None:
+        lr = _lrs(rc, s.sscale)
+        occ_opt = make_optimizers(st.occ, {k: lr[k] for k in st.occ.keys()})
     means_decay = (rc.lr_means_final / rc.lr_means) ** (1.0 / max(1, rc.iterations))
     order: list[int] = []
-    last_good = start
-    t_start = time.perf_counter()
-    cpu_start = time.process_time()
-    last_ckpt = t_start
+    last_good, last_ckpt = st.start, t_start
     loss_ema = psnr_ema = None
     bad_run = 0  # consecutive steps with non-finite gradients
-
-    def checkpoint(step: int) -> None:
-        extra = dict(extra_base, train_seconds=elapsed0 + time.perf_counter() - t_start,
-                     rng=rng.bit_generator.state, occluders=_tensors(occ), nonfinite_grads=dict(nonfinite))
-        save_checkpoint(paths["ckpt"], step, params, optimizers, state, extra)
-
     with make_progress() as bar:
-        task = bar.add_task(f"training ({rc.mode})", total=rc.iterations, completed=start, info="")
-        step = start
-        for step in range(start, rc.iterations):
+        task = bar.add_task(f"training ({rc.mode})", total=rc.iterations, completed=st.start, info="")
+        for step in range(st.start, rc.iterations):
             if not order:
-                order = list(rng.permutation(len(train_views)))
-            view = train_views[order.pop()]
-            down = 2 ** max(0, rc.num_downscales - step // sched["res_interval"])
-            sh_deg = min(rc.sh_degree, step // sched["sh_interval"])
-            img, alpha, K, w, h = cache.get(view.name, down)
-            viewmat = torch.tensor(view.viewmat, dtype=torch.float32, device=device)
-            if object_mode and rc.crop:
-                x0, y0, x1, y1 = cache.box(view.name, down)
-            else:
-                x0, y0, x1, y1 = 0, 0, w, h
-            Kc = K.clone()
-            Kc[0, 2] -= x0
-            Kc[1, 2] -= y0
-            gt = img[y0:y1, x0:x1]  # [h', w', 3]
-            bg = torch.from_numpy(rng.random(3)).float().to(device)  # [3] random background each step
-            # object mode: the frame composited over bg through its mask (in the loss kernel's first pass on the CPU)
-            gt_alpha = alpha[y0:y1, x0:x1] if object_mode else None  # [h', w', 1]
-
-            for o in [optimizers["means"]] + ([occ_opt["means"]] if occ_opt else []):
+                order = list(st.rng.permutation(len(s.train_views)))
+            view = s.train_views[order.pop()]
+            down = 2 ** max(0, rc.num_downscales - step // s.sched["res_interval"])
+            for o in [st.optimizers["means"]] + ([occ_opt["means"]] if occ_opt else []):
                 for g in o.param_groups:
-                    g["lr"] = rc.lr_means * sscale * means_decay**step
-            try:
-                out = render(params, viewmat, Kc, x1 - x0, y1 - y0, sh_deg, rc.backend, occ, bg)
-            except PlantsplatError as exc:  # non-finite parameters: the previous step diverged
-                _diverged(paths, last_good, exc, "the model's parameters became NaN/inf")
-            n_model = params["means"].shape[0]
-            strategy.step_pre_backward(params, optimizers, state, step, out)
-            # render composited over bg, [h', w', 3], against gt: (1 - l) L1 + l (1 - SSIM)
-            loss, mse = photometric_loss(out.color, out.alpha, bg, gt, rc.ssim_lambda, gt_alpha)
-            if not torch.isfinite(loss):
-                _diverged(paths, last_good, None)
-            loss.backward()
-            bad, where = _drop_nonfinite_grads([("", params), ("occluder ", occ)], out.means2d)
+                    g["lr"] = rc.lr_means * s.sscale * means_decay**step
+            loss, mse, bad, where = _step(st, s, rc, view, down, step, occ_opt, paths, last_good)
             if bad:
-                nonfinite["steps"] += 1
-                nonfinite["gaussians"] += bad
+                st.nonfinite["steps"] += 1
+                st.nonfinite["gaussians"] += bad
                 bad_run += 1
-                if nonfinite["steps"] == 1:
+                if st.nonfinite["steps"] == 1:
                     log.warning("step %d: NaN/inf gradients (%s) for %d Gaussians; their update is skipped this step "
                                 "(counted in the summary as nonfinite_grad_steps)", step, ", ".join(where), bad)
-                if bad_run >= _MAX_NONFINITE_RUN:
+                if bad_run >= MAX_NONFINITE_RUN:
                     _diverged(paths, last_good, None, f"the gradients were NaN/inf {bad_run} steps in a row")
             else:
                 bad_run = 0
-            # grads are w.r.t. crop pixels; normalise by the full (downscaled) image size as gsplat
-            strategy.step_post_backward(params, optimizers, state, step, _ModelPart(out, n_model), w, h)
-            for o in list(optimizers.values()) + list((occ_opt or {}).values()):
-                o.step()
-                o.zero_grad(set_to_none=True)
-
-            with torch.no_grad():
-                lv = float(loss)
-                pv = float(-10 * torch.log10(mse.clamp_min(1e-10)))
+            lv, pv = float(loss), float(-10 * torch.log10(mse.clamp_min(1e-10)))
             loss_ema = lv if loss_ema is None else 0.9 * loss_ema + 0.1 * lv
             psnr_ema = pv if psnr_ema is None else 0.9 * psnr_ema + 0.1 * pv
-            bar.update(task, completed=step + 1,
-                       info=f"loss {loss_ema:.4f}  PSNR {psnr_ema:5.2f}  {params['means'].shape[0]:,} Gaussians  1/{down}")
+            n = st.params["means"].shape[0]
+            bar.update(task, completed=step + 1, info=f"loss {loss_ema:.4f}  PSNR {psnr_ema:5.2f}  {n:,} Gaussians  1/{down}")
             now = time.perf_counter()
             if now - last_ckpt > cfg.checkpoint_seconds:
-                checkpoint(step + 1)
-                last_good = step + 1
-                last_ckpt = now
+                _checkpoint(st, s, rc, paths, step + 1, t_start)
+                last_good, last_ckpt = step + 1, now
             if step % max(1, rc.iterations // 10) == 0:
-                log.debug("step %d loss %.4f psnr %.2f n=%d", step, loss_ema, psnr_ema, params["means"].shape[0])
+                log.debug("step %d loss %.4f psnr %.2f n=%d", step, loss_ema, psnr_ema, n)
+    return loss_ema, psnr_ema
 
-    culled = strategy.final_cull(params, optimizers)
+
+def _step(st: _State, s: _Setup, rc: ResolvedConfig, view, down: int, step: int, occ_opt, paths: dict, last_good: int):
+    """One optimisation step on ``view`` at 1/``down`` resolution; returns the loss, the MSE and the non-finite
+    gradients dropped (count, where)."""
+    object_mode = rc.mode == "object"
+    img, alpha, K, w, h = s.cache.get(view.name, down)
+    viewmat = torch.tensor(view.viewmat, dtype=torch.float32, device=s.device)
+    x0, y0, x1, y1 = s.cache.box(view.name, down) if object_mode and rc.crop else (0, 0, w, h)
+    Kc = K.clone()
+    Kc[0, 2] -= x0
+    Kc[1, 2] -= y0
+    gt = img[y0:y1, x0:x1]  # [h', w', 3]
+    bg = torch.from_numpy(st.rng.random(3)).float().to(s.device)  # [3] random background each step
+    # object mode: the frame composited over bg through its mask (in the loss kernel's first pass on the CPU)
+    gt_alpha = alpha[y0:y1, x0:x1] if object_mode else None  # [h', w', 1]
+    sh_deg = min(rc.sh_degree, step // s.sched["sh_interval"])
+    try:
+        out = render(st.params, viewmat, Kc, x1 - x0, y1 - y0, sh_deg, rc.backend, st.occ, bg)
+    except PlantsplatError as exc:  # non-finite parameters: the previous step diverged
+        _diverged(paths, last_good, exc, "the model's parameters became NaN/inf")
+    n_model = st.params["means"].shape[0]
+    s.strategy.step_pre_backward(st.params, st.optimizers, st.strategy_state, step, out)
+    # render composited over bg, [h', w', 3], against gt: (1 - l) L1 + l (1 - SSIM)
+    loss, mse = photometric_loss(out.color, out.alpha, bg, gt, rc.ssim_lambda, gt_alpha)
+    if not torch.isfinite(loss):
+        _diverged(paths, last_good, None)
+    loss.backward()
+    bad, where = drop_nonfinite_grads([("", st.params), ("occluder ", st.occ)], out.means2d)
+    # grads are w.r.t. crop pixels; normalise by the full (downscaled) image size as gsplat
+    s.strategy.step_post_backward(st.params, st.optimizers, st.strategy_state, step, _ModelPart(out, n_model), w, h)
+    for o in list(st.optimizers.values()) + list((occ_opt or {}).values()):
+        o.step()
+        o.zero_grad(set_to_none=True)
+    return loss.detach(), mse, bad, where
+
+
+def _checkpoint(st: _State, s: _Setup, rc: ResolvedConfig, paths: dict, step: int, t_start: float) -> None:
+    extra = {"config": asdict(rc), "split": s.split, "train_seconds": st.elapsed0 + time.perf_counter() - t_start,
+             "rng": st.rng.bit_generator.state, "occluders": occluder_tensors(st.occ), "nonfinite_grads": dict(st.nonfinite)}
+    save_checkpoint(paths["ckpt"], step, st.params, st.optimizers, st.strategy_state, extra)
+
+
+def _finish(ws: Workspace, cfg: TrainConfig, rc: ResolvedConfig, paths: dict, s: _Setup, st: _State, wall: float,
+            cpu: float, loss_ema, psnr_ema) -> dict:
+    """The final cull, ``model.pt`` and the summary (with the test views' metrics when ``cfg.evaluate``)."""
+    culled = s.strategy.final_cull(st.params, st.optimizers)
+    occ = st.occ
     if occ is not None:  # occluders that stayed transparent hide nothing
         with torch.no_grad():
-            keep = torch.sigmoid(occ["opacities"]) >= strategy.prune_opa
-            occ = _occluders_from({k: v[keep] for k, v in _tensors(occ).items()}, device)
-    train_seconds = elapsed0 + time.perf_counter() - t_start
-    n_final = int(params["means"].shape[0])
+            keep = torch.sigmoid(occ["opacities"]) >= s.strategy.prune_opa
+            occ = occluders_from({k: v[keep] for k, v in occluder_tensors(occ).items()}, s.device)
+    train_seconds = st.elapsed0 + wall
+    n_final = int(st.params["means"].shape[0])
     log.info("trained %d steps in %.1f s; %d Gaussians (%d culled below opacity %.2f)", rc.iterations,
-             train_seconds, n_final, culled, strategy.prune_opa)
+             train_seconds, n_final, culled, s.strategy.prune_opa)
     summary = {
         "mode": rc.mode, "backend": rc.backend, "preset": rc.preset, "iterations": rc.iterations,
-        "train_seconds": round(train_seconds, 2), "n_gaussians": n_final, "resumed": resumed,
-        # CPU seconds of this process (this session only): wall time is inflated on a busy machine
-        "train_cpu_seconds": round(time.process_time() - cpu_start, 2),
-        "train_resolution_scale": base_scale, "final_loss": loss_ema, "final_train_psnr": psnr_ema,
-        "scene_scale": sscale,
-        "nonfinite_grad_steps": nonfinite["steps"], "nonfinite_grad_gaussians": nonfinite["gaussians"],
+        "train_seconds": round(train_seconds, 2), "n_gaussians": n_final, "resumed": st.resumed,
+        # CPU seconds of this process (this run only, not the resumed ones): wall time is inflated on a busy machine
+        "train_cpu_seconds": round(cpu, 2),
+        "train_resolution_scale": s.base_scale, "final_loss": loss_ema, "final_train_psnr": psnr_ema,
+        "scene_scale": s.sscale,
+        "nonfinite_grad_steps": st.nonfinite["steps"], "nonfinite_grad_gaussians": st.nonfinite["gaussians"],
     }
-    save_checkpoint(paths["model"], rc.iterations, params, optimizers, state,
-                    dict(extra_base, summary=summary, train_seconds=train_seconds, occluders=_tensors(occ)))
+    save_checkpoint(paths["model"], rc.iterations, st.params, st.optimizers, st.strategy_state,
+                    {"config": asdict(rc), "split": s.split, "summary": summary, "train_seconds": train_seconds,
+                     "occluders": occluder_tensors(occ)})
     paths["ckpt"].unlink(missing_ok=True)
     if cfg.evaluate:
         from plantsplat.train.evaluate import evaluate_workspace
 
         summary["metrics"] = evaluate_workspace(ws, train_dir=paths["dir"], metrics_path=paths["metrics"],
                                                 lpips_weights=cfg.lpips_weights, backend=rc.backend,
-                                                train_summary=summary, scene=scene)
+                                                train_summary=summary, scene=s.scene)
     return summary
-
-
-def _tensors(p) -> dict | None:
-    """Detached copies of the geometry of a parameter dict (occluders: no colours), or None."""
-    if p is None:
-        return None
-    return {k: p[k].detach().clone().cpu() for k in ("means", "scales", "quats", "opacities")}
-
-
-def _occluders_from(t: dict | None, device) -> torch.nn.ParameterDict | None:
-    """Occluder parameters from :func:`_tensors`' dict (None: no occluders)."""
-    if not t or not t["means"].shape[0]:
-        return None
-    return torch.nn.ParameterDict({k: torch.nn.Parameter(v.clone().to(device)) for k, v in t.items()})
-
-
-# A step whose gradients have NaN/inf entries has those Gaussians' gradients zeroed (Adam's update of them is
-# then its momentum alone, finite); training stops as diverged only when this lasts this many steps in a row.
-_MAX_NONFINITE_RUN = 20
-
-
-def _drop_nonfinite_grads(groups, means2d) -> tuple[int, list[str]]:
-    """Zero every gradient of the Gaussians that have a NaN/inf gradient entry; returns their number and
-    the parameters it was found in.
-
-    ``groups`` are ``(label, ParameterDict or None)`` in the render's order (the model, then the occluders), whose
-    rows are Gaussians; ``means2d`` is the render's screen-space means (its gradient feeds the density
-    strategy, so it is cleaned too). One NaN in a pixel's gradient reaches every Gaussian drawn there, and a
-    single such step used to leave NaN means after Adam's update, which stopped the run (``training
-    diverged``) although the loss was finite. A finite sum of a gradient means it has no NaN/inf: the
-    per-entry check runs only when a sum is not finite, and all sums are read at once (one GPU sync a step).
-    """
-    g2 = getattr(means2d, "grad", None)
-    parts, offset = [], 0
-    for label, p in groups:
-        if p is None:
-            continue
-        n = p["means"].shape[0]
-        grads = [(k, t.grad) for k, t in p.items() if t.grad is not None]
-        if g2 is not None and g2.shape[0] >= offset + n:
-            grads.append(("means2d", g2[offset:offset + n]))
-        parts.append((label, n, grads))
-        offset += n
-    sums = [g.sum() for _, _, grads in parts for _, g in grads]
-    if not sums:
-        return 0, []
-    finite = torch.isfinite(torch.stack(sums))
-    if bool(finite.all()):
-        return 0, []
-    finite = iter(finite.tolist())  # in the order of the sums
-    total, where = 0, []
-    for label, n, grads in parts:
-        bad = None
-        for k, g in grads:
-            if next(finite):
-                continue
-            rows = ~torch.isfinite(g).reshape(n, -1).all(dim=1)
-            if bool(rows.any()):
-                bad = rows if bad is None else bad | rows
-                where.append(label + k)
-        if bad is not None:
-            for _, g in grads:
-                g[bad] = 0.0
-            total += int(bad.sum())
-    return total, where
 
 
 def _diverged(paths: dict, last_good: int, exc: Exception | None, what: str = "the loss became NaN/inf"):
@@ -517,16 +337,3 @@ def _lrs(rc: ResolvedConfig, sscale: float) -> dict[str, float]:
 
 def _jsonable(d: dict) -> dict:
     return {k: (str(v) if isinstance(v, Path) else v) for k, v in d.items()}
-
-
-def load_model(ws: Workspace, train_dir: Path | None = None) -> tuple[torch.nn.ParameterDict, dict]:
-    """The finished model of a workspace: parameters and the checkpoint's ``extra`` (config, split)."""
-    p = model_path(ws, train_dir)
-    if not p.is_file():
-        ck = p.parent / "checkpoint.pt"
-        hint = " (an unfinished run's checkpoint exists: re-run it to finish)" if ck.is_file() else ""
-        raise PlantsplatError(f"{p}: no trained model{hint}; run `plantsplat train {ws.root}` first")
-    blob = load_checkpoint(p)
-    return params_from_checkpoint(blob), blob["extra"]
-
-

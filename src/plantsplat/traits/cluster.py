@@ -227,5 +227,6 @@ def select_plant(
     if len(chosen) > max_pieces:
         reasons.append(f"plant assembled from {len(chosen)} clusters (more than {max_pieces}): reconstruction is fragmented")
     if main_fraction < 0.25:
-        reasons.append(f"largest plant cluster holds only {main_fraction:.0%} of the plant's points: reconstruction is fragmented")
+        reasons.append(f"largest plant cluster holds only {main_fraction:.0%} of the plant's points: "
+                       "reconstruction is fragmented")
     return PlantSelection(mask=mask, clusters=chosen, main_fraction=float(main_fraction), excluded=excluded, reasons=reasons)

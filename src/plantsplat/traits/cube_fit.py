@@ -258,30 +258,10 @@ def _lsq_plane(pts: np.ndarray) -> tuple[np.ndarray, float, float]:
     return nrm, float(-nrm @ c), rms
 
 
-def fit_cube_planes(
-    points: np.ndarray,
-    size_hint: float | None = None,
-    threshold: float | None = None,
-    max_planes: int = 8,
-    iterations: int = 1000,
-    seed: int = 0,
-) -> CubeFit | None:
-    """Fit the cube's face planes and measure its edge. ``points [N, 3]`` are the cube's points.
-
-    ``threshold`` (RANSAC inlier distance) defaults to 2 % of the edge (``size_hint`` or the robust
-    OBB size). Returns None when fewer than one pair of opposite faces could be fitted.
-    """
+def _ransac_planes(pts: np.ndarray, thr: float, max_planes: int, iterations: int, seed: int):
+    """Planes found one after another by RANSAC (Open3D), each refitted by least squares."""
     import open3d as o3d
 
-    pts = np.asarray(points, dtype=np.float64)
-    if len(pts) < 60:
-        return None
-    if size_hint:
-        size = float(size_hint)
-    else:
-        _, lo, hi, _ = _robust_obb(pts)
-        size = float(np.mean(hi - lo))
-    thr = float(threshold) if threshold else 0.02 * size
     o3d.utility.random.seed(seed)
     remaining = np.arange(len(pts))
     planes: list[tuple[np.ndarray, float]] = []
@@ -290,20 +270,26 @@ def fit_cube_planes(
             if len(remaining) < max(30, 0.03 * len(pts)):
                 break
             pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[remaining]))
-            model, inl = pc.segment_plane(thr, 3, iterations)
+            _, inl = pc.segment_plane(thr, 3, iterations)
             inl = np.asarray(inl, dtype=np.int64)
             if len(inl) < max(30, 0.03 * len(pts)):
                 break
             nrm, d, _ = _lsq_plane(pts[remaining[inl]])
             planes.append((nrm, d))
             remaining = np.delete(remaining, inl)
-    if len(planes) < 2:
-        return None
-    # assign every point to its nearest plane (within 2.5 thr) and refine each plane twice
+    return planes
+
+
+def _nearest_plane(pts: np.ndarray, planes, thr: float):
+    """Distances ``[N, P]`` to each plane, the nearest plane per point, and whether it is within 2.5 thr."""
+    dist = np.stack([np.abs(pts @ n + d) for n, d in planes], axis=1)
+    return dist, dist.argmin(1), dist.min(1) < 2.5 * thr
+
+
+def _refine_planes(pts: np.ndarray, planes, thr: float):
+    """Every point goes to its nearest plane (within 2.5 thr); each plane is refitted to its points, twice."""
     for _ in range(2):
-        dist = np.stack([np.abs(pts @ n + d) for n, d in planes], axis=1)  # [N, P]
-        near = dist.argmin(1)
-        ok = dist.min(1) < 2.5 * thr
+        _, near, ok = _nearest_plane(pts, planes, thr)
         new = []
         for k, (n0, d0) in enumerate(planes):
             sel = pts[ok & (near == k)]
@@ -315,11 +301,11 @@ def fit_cube_planes(
                 n, d = -n, -d
             new.append((n, d))
         planes = new
-    dist = np.stack([np.abs(pts @ n + d) for n, d in planes], axis=1)
-    near = dist.argmin(1)
-    ok = dist.min(1) < 2.5 * thr
-    counts = np.array([int((ok & (near == k)).sum()) for k in range(len(planes))])
-    # group planes into (up to) three orthogonal directions, most-supported planes first
+    return planes
+
+
+def _group_directions(planes, counts: np.ndarray) -> list[list[int]]:
+    """Planes grouped into (up to) three orthogonal directions, most-supported planes first."""
     cos_par = np.cos(np.radians(12))
     groups: list[list[int]] = []
     for k in np.argsort(-counts):
@@ -331,33 +317,46 @@ def fit_cube_planes(
         else:
             if all(abs(n @ planes[g[0]][0]) < np.sin(np.radians(12)) for g in groups) and len(groups) < 3:
                 groups.append([int(k)])
-    # within a direction, merge duplicate fits of the same face (offsets closer than 20 % of the
-    # edge) and keep the two best-supported sides; each side starts from the LSQ plane of its points
+    return groups
+
+
+def _two_sides(planes, group: list[int], counts: np.ndarray, size: float) -> list[list]:
+    """Within a direction, duplicate fits of the same face (offsets closer than 20 % of the edge) merged;
+    the two best-supported sides, each a list of ``(plane index, position along the direction)``."""
+    ref = planes[group[0]][0]
+    members = []
+    for k in group:
+        n, d = planes[k]
+        members.append((k, -d if n @ ref > 0 else d))  # position along ref
+    members.sort(key=lambda m: -m[1])
+    sides: list[list] = []
+    for m in members:
+        if sides and abs(m[1] - sides[-1][0][1]) < 0.2 * size:
+            sides[-1].append(m)
+        else:
+            sides.append([m])
+    return sorted(sides, key=lambda sd: -sum(counts[k] for k, _ in sd))[:2]
+
+
+def _side_planes(pts, planes, groups, counts, near, ok, size: float):
+    """One plane per side of each direction, fitted to the points of its merged planes."""
     side_axis: list[int] = []
     side_planes: list[tuple[np.ndarray, float]] = []
     for gi, g in enumerate(groups):
-        ref = planes[g[0]][0]
-        members = []
-        for k in g:
-            n, d = planes[k]
-            members.append((k, -d if n @ ref > 0 else d))  # position along ref
-        members.sort(key=lambda m: -m[1])
-        sides: list[list] = []
-        for m in members:
-            if sides and abs(m[1] - sides[-1][0][1]) < 0.2 * size:
-                sides[-1].append(m)
-            else:
-                sides.append([m])
-        sides = sorted(sides, key=lambda sd: -sum(counts[k] for k, _ in sd))[:2]
-        for sd in sides:
+        for sd in _two_sides(planes, g, counts, size):
             idx = np.isin(near, [k for k, _ in sd]) & ok
             if idx.sum() < 10:
                 continue
             n, d, _ = _lsq_plane(pts[idx])
             side_axis.append(gi)
             side_planes.append((n, d))
-    # final fits: every point goes to its nearest face; points near a cube edge (close to two
-    # faces) are left out, so that one face's points never pull on another's plane
+    return side_axis, side_planes
+
+
+def _final_face_fits(pts, side_planes, thr: float):
+    """Final fits: every point goes to its nearest face; points near a cube edge (close to two faces) are
+    left out, so that one face's points never pull on another's plane. Returns the fits
+    ``(normal, offset, rms, inliers, centroid)`` and the distances of the last assignment."""
     for _ in range(2):
         dist = np.stack([np.abs(pts @ n + d) for n, d in side_planes], axis=1)  # [N, S]
         near = dist.argmin(1)
@@ -374,27 +373,34 @@ def fit_cube_planes(
                 n, d = -n, -d
             fits.append((n, d, rms, int(idx.sum()), pts[idx].mean(0)))
         side_planes = [(f[0], f[1]) for f in fits]
-    ok = dist.min(1) < 2.5 * thr
+    return fits, dist
+
+
+def _axis_normal(fits, ks: list[int], side_axis, gi: int, fallback: np.ndarray) -> np.ndarray:
+    if not ks:
+        ks_all = [k for k in range(len(fits)) if side_axis[k] == gi]
+        nav = fits[ks_all[0]][0] if ks_all else fallback
+    else:
+        ref = fits[ks[0]][0]
+        nav = np.mean([fits[k][0] * np.sign(fits[k][0] @ ref) for k in ks], axis=0)
+    return nav / np.linalg.norm(nav)
+
+
+def _faces_per_axis(fits, side_axis, groups, planes, centre0: np.ndarray, size: float):
+    """Per direction: its mean normal, its faces (signed position at the face points' centroid) and the
+    edge between two opposite faces. Returns ``(faces, edge_per_axis, axis_normals, axis_centres)``."""
     best_count = max(f[3] for f in fits)
-    centre0 = pts.mean(0)
     faces: list[dict] = []
     edge_per_axis: list[float | None] = []
     axis_normals = []
     axis_centres: list[float | None] = []
     for gi in range(len(groups)):
         ks = [k for k in range(len(fits)) if side_axis[k] == gi and fits[k][3] >= max(30, 0.1 * best_count)]
-        if not ks:
-            ks_all = [k for k in range(len(fits)) if side_axis[k] == gi]
-            nav = fits[ks_all[0]][0] if ks_all else planes[groups[gi][0]][0]
-        else:
-            ref = fits[ks[0]][0]
-            nav = np.mean([fits[k][0] * np.sign(fits[k][0] @ ref) for k in ks], axis=0)
-        nav = nav / np.linalg.norm(nav)
+        nav = _axis_normal(fits, ks, side_axis, gi, planes[groups[gi][0]][0])
         axis_normals.append(nav)
         offs = []
         for k in ks:
-            n, d, rms, cnt, c = fits[k]
-            # signed position of the face along the mean normal, taken at its points' centroid
+            _, _, rms, cnt, c = fits[k]
             pos = float(nav @ c)
             outward = nav if pos > nav @ centre0 else -nav
             faces.append({"axis": gi, "normal": outward, "offset": pos, "inliers": cnt, "rms": float(rms)})
@@ -405,6 +411,60 @@ def fit_cube_planes(
         else:
             edge_per_axis.append(None)
             axis_centres.append(None)
+    return faces, edge_per_axis, axis_normals, axis_centres
+
+
+def _cube_centre(axes: np.ndarray, axis_centres, faces, edge: float, centre0: np.ndarray) -> np.ndarray:
+    """The mid-plane where both faces are known, else one face moved by edge/2 inward, else the mean."""
+    coords = []
+    for ax in range(3):
+        if axis_centres[ax] is not None:
+            coords.append(axis_centres[ax])
+            continue
+        one = [f for f in faces if f["axis"] == ax]
+        if one:
+            f = one[0]
+            sign = 1.0 if f["normal"] @ axes[ax] > 0 else -1.0
+            coords.append(f["offset"] - sign * edge / 2)
+        else:
+            coords.append(float(axes[ax] @ centre0))
+    return np.linalg.solve(axes, np.array(coords))
+
+
+def fit_cube_planes(
+    points: np.ndarray,
+    size_hint: float | None = None,
+    threshold: float | None = None,
+    max_planes: int = 8,
+    iterations: int = 1000,
+    seed: int = 0,
+) -> CubeFit | None:
+    """Fit the cube's face planes and measure its edge. ``points [N, 3]`` are the cube's points.
+
+    ``threshold`` (RANSAC inlier distance) defaults to 2 % of the edge (``size_hint`` or the robust
+    OBB size). Returns None when fewer than one pair of opposite faces could be fitted.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if len(pts) < 60:
+        return None
+    if size_hint:
+        size = float(size_hint)
+    else:
+        _, lo, hi, _ = _robust_obb(pts)
+        size = float(np.mean(hi - lo))
+    thr = float(threshold) if threshold else 0.02 * size
+    planes = _ransac_planes(pts, thr, max_planes, iterations, seed)
+    if len(planes) < 2:
+        return None
+    planes = _refine_planes(pts, planes, thr)
+    _, near, ok = _nearest_plane(pts, planes, thr)
+    counts = np.array([int((ok & (near == k)).sum()) for k in range(len(planes))])
+    groups = _group_directions(planes, counts)
+    side_axis, side_planes = _side_planes(pts, planes, groups, counts, near, ok, size)
+    fits, dist = _final_face_fits(pts, side_planes, thr)
+    ok = dist.min(1) < 2.5 * thr
+    centre0 = pts.mean(0)
+    faces, edge_per_axis, axis_normals, axis_centres = _faces_per_axis(fits, side_axis, groups, planes, centre0, size)
     measured = [e for e in edge_per_axis if e is not None]
     if not measured:
         return None
@@ -419,22 +479,8 @@ def fit_cube_planes(
         axis_centres.append(None)
     u, _, vt = np.linalg.svd(A)
     axes = u @ vt
-    # centre: mid-plane where both faces are known, else one face moved by edge/2 inward, else mean
-    centre_coords = []
-    for ax in range(3):
-        if axis_centres[ax] is not None:
-            centre_coords.append(axis_centres[ax])
-            continue
-        one = [f for f in faces if f["axis"] == ax]
-        if one:
-            f = one[0]
-            sign = 1.0 if f["normal"] @ axes[ax] > 0 else -1.0
-            centre_coords.append(f["offset"] - sign * edge / 2)
-        else:
-            centre_coords.append(float(axes[ax] @ centre0))
-    centre = np.linalg.solve(axes, np.array(centre_coords))
-    tot = ok.sum()
-    plane_rms = float(np.sqrt(np.mean(dist.min(1)[ok] ** 2))) if tot else float("nan")
+    centre = _cube_centre(axes, axis_centres, faces, edge, centre0)
+    plane_rms = float(np.sqrt(np.mean(dist.min(1)[ok] ** 2))) if ok.sum() else float("nan")
     fit = CubeFit(
         edge=edge, edge_per_axis=edge_per_axis, axes=axes, centre=centre, faces=faces, plane_rms=plane_rms
     )

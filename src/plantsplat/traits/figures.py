@@ -1,7 +1,7 @@
 """The traits figure: a top view with the PCA axes and widths, a side view with the height.
 
-Example:
-    >>> traits_figure(result, "ws/plant_01/traits.png", title="plant_01")   # doctest: +SKIP
+Usage:
+    traits_figure(result, "ws/plant_01/traits.png", title="plant_01")
 """
 
 from __future__ import annotations
@@ -78,9 +78,10 @@ def traits_figure(result, path: str | Path, title: str = "", max_points: int = 3
     # side view: along the major axis
     s_major = proj[:, 0]
     ax2.scatter(s_major[idx], P[idx, 2], s=1.5, c=col, linewidths=0)
-    zmin, zmax = P[:, 2].min(), P[:, 2].max()
+    zmax = P[:, 2].max()
+    zmin = P[:, 2].min() if result.soil_z is None else result.soil_z
     ax2.axhline(0.0, color="0.3", lw=1.5, label="ground (z = 0)")
-    ax2.axhline(zmin, color="tab:purple", ls="--", lw=1)
+    ax2.axhline(zmin, color="tab:purple", ls="--", lw=1, label=None if result.soil_z is None else "soil")
     ax2.axhline(zmax, color="tab:purple", ls="--", lw=1)
     xa = hi[0] + 0.05 * (hi[0] - lo[0])
     ax2.annotate("", xy=(xa, zmax), xytext=(xa, zmin), arrowprops={"arrowstyle": "<->", "color": "tab:purple", "lw": 2})

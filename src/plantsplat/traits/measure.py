@@ -54,22 +54,15 @@ from plantsplat import traitdefs
 from plantsplat.cube import CubeSpec
 from plantsplat.errors import PlantsplatError
 from plantsplat.log import get_logger
+from plantsplat.traits.checks import soil_level
 
 log = get_logger(__name__)
 
-ROBUST_KEYS = ("height_cm", "width1_cm", "width2_cm")
-UNITS = {
-    "height_cm": "cm",
-    "width1_cm": "cm",
-    "width2_cm": "cm",
-    "canopy_volume_cm3": "cm^3",
-    "canopy_area_cm2": "cm^2",
-    "fruit_count": "count",
-}
+ROBUST_KEYS = ("height_cm", "height_extent_cm", "width1_cm", "width2_cm")
 
 
 @dataclass
-class TraitSettings:
+class TraitsConfig:
     """Settings of the trait measurement (all lengths in cm unless said otherwise)."""
 
     opacity_min: float = 0.1
@@ -162,16 +155,19 @@ class TraitResult:
     timings: dict = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
     """Informational messages that do not lower the quality."""
+    soil_z: float | None = None
+    """Height of the soil surface the height is measured from (cm, calibrated frame); None: the plant's extent."""
 
     def to_json(self) -> dict:
         """The ``traits.json`` content (without the point arrays)."""
         out: dict = {k: self.traits.get(k) for k in traitdefs.TRAIT_KEYS}
         out.update(
             {
-                "units": UNITS,
+                "units": traitdefs.TRAIT_UNITS,
                 "quality": self.quality,
                 "quality_reasons": self.reasons,
                 "scale_source": self.scale.get("source"),
+                "soil_z_cm": self.soil_z,
                 "notes": self.notes,
                 "robust": {k: self.robust.get(k) for k in ROBUST_KEYS} | {"trim": self.settings.get("trim")},
                 "method": (
@@ -179,8 +175,9 @@ class TraitResult:
                     "RANSAC+least-squares planes of its faces, edge from the distance between opposite planes or, "
                     "for Gaussians, the 1-99 % envelope along the axes (scale.cube_edge_method); points = Gaussian "
                     "centres plus their axis ends at settings.extent_sigma; plant = largest other cluster plus nearby "
-                    "clusters; height = z extent, widths = extents along the PCA axes of the ground-projected "
-                    "points, canopy volume/area = 3D/2D convex hull, fruit = clusters of red points"
+                    "clusters; height = top above the soil (soil_z_cm; the z extent without a soil), height_extent = z "
+                    "extent, widths = extents along the PCA axes of the ground-projected points, "
+                    "canopy volume/area = 3D/2D convex hull, fruit = clusters of red points"
                 ),
                 "scale": self.scale,
                 "cube": self.cube,
@@ -198,11 +195,11 @@ class TraitResult:
         return out
 
 
-def fruit_mask(colors: np.ndarray, s: TraitSettings) -> np.ndarray:
+def fruit_mask(colors: np.ndarray, s: TraitsConfig) -> np.ndarray:
     """[N] bool: points whose colour matches the fruit colour model (see the module docstring).
 
     Example:
-        >>> fruit_mask(np.array([[200, 20, 30], [40, 160, 50], [250, 250, 250]], np.uint8), TraitSettings()).tolist()
+        >>> fruit_mask(np.array([[200, 20, 30], [40, 160, 50], [250, 250, 250]], np.uint8), TraitsConfig()).tolist()
         [True, False, False]
     """
     from matplotlib.colors import rgb_to_hsv
@@ -248,7 +245,7 @@ def fruit_sized(points: np.ndarray, max_cm: float) -> bool:
     return bool(ext[1] <= max_cm and ext[0] <= 2.0 * max_cm)
 
 
-def count_fruit(points_cm: np.ndarray, colors: np.ndarray, s: TraitSettings) -> tuple[int, np.ndarray]:
+def count_fruit(points_cm: np.ndarray, colors: np.ndarray, s: TraitsConfig) -> tuple[int, np.ndarray]:
     """Count fruit among the plant's points: ``(count, centres [F, 3])``."""
     import open3d as o3d
 
@@ -270,7 +267,7 @@ def count_fruit(points_cm: np.ndarray, colors: np.ndarray, s: TraitSettings) -> 
     return len(centres), np.array(centres).reshape(-1, 3)
 
 
-def _failed(reason: str, settings: TraitSettings, scale: dict | None = None, **kw) -> TraitResult:
+def _failed(reason: str, settings: TraitsConfig, scale: dict | None = None, **kw) -> TraitResult:
     return TraitResult(
         traits={k: None for k in traitdefs.TRAIT_KEYS},
         robust={k: None for k in ROBUST_KEYS},
@@ -284,55 +281,8 @@ def _failed(reason: str, settings: TraitSettings, scale: dict | None = None, **k
     )
 
 
-def measure_traits(
-    points: np.ndarray,
-    colors: np.ndarray | None = None,
-    *,
-    calibrated: bool,
-    opacity: np.ndarray | None = None,
-    scales: np.ndarray | None = None,
-    camera_centres: np.ndarray | None = None,
-    settings: TraitSettings | None = None,
-    cube: CubeSpec | None = None,
-    centre_mask: np.ndarray | None = None,
-) -> TraitResult:
-    """Measure plant traits from a point cloud of a plant and the calibration cube.
-
-    Args:
-        points: ``[N, 3]`` positions (Gaussian centres or any points).
-        colors: ``[N, 3]`` uint8 RGB, or None (then no fruit count).
-        calibrated: True when ``points`` are already in the ArUco-calibrated frame (cm, z up, ground
-            at z = 0); False for an arbitrary frame and scale (the cube then gives both).
-        opacity: ``[N]`` Gaussian opacities (0..1) to filter by ``settings.opacity_min``; None keeps all.
-        scales: ``[N, 3]`` Gaussian extents (same units as points) for ``settings.max_scale_cm``.
-        camera_centres: ``[M, 3]`` camera positions in the same frame (helps find "up" when uncalibrated).
-        settings: :class:`TraitSettings`.
-        cube: the cube's geometry (only ``size`` is used); defaults to :class:`CubeSpec` ().
-        centre_mask: ``[N]`` bool, True for Gaussian centres when the other points are extent samples
-            (:func:`gaussian_extent_points`); fruit are counted on centres only. None: all points.
-
-    Returns:
-        A :class:`TraitResult`; ``quality`` is 'failed' (and every trait None) when the traits cannot
-        be measured (empty cloud, no cube in an uncalibrated cloud, no plant).
-
-    Example:
-        >>> res = measure_traits(np.zeros((0, 3)), None, calibrated=True)
-        >>> res.quality, res.reasons[0][:26]
-        ('failed', 'the point cloud is empty (')
-    """
-    from plantsplat.traits.cluster import dbscan, far_clusters_reason, select_plant
-    from plantsplat.traits.cube_fit import (
-        cube_frame_transform,
-        decide_up,
-        find_cube_cluster,
-        fit_cube_planes,
-        use_envelope,
-    )
-
-    s = settings or TraitSettings()
-    size = float((cube or CubeSpec()).size) if cube is not None else s.cube_size_cm
-    timings: dict[str, float] = {}
-    t0 = time.perf_counter()
+def _filter_cloud(points, colors, opacity, scales, centre_mask, s: TraitsConfig, calibrated: bool):
+    """The finite points that pass the opacity and Gaussian-size filters, with their colours."""
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"points must have shape [N, 3], got {pts.shape}")
@@ -350,30 +300,23 @@ def measure_traits(
     cols = None if cols is None else cols[keep].astype(np.uint8)
     is_centre = np.ones(len(pts), bool) if centre_mask is None else np.asarray(centre_mask, bool)[keep]
     filt = {"input_points": n_in, "non_finite": n_nonfinite, "kept_points": int(len(pts))}
-    if len(pts) < 100:
-        return _failed(
-            f"the point cloud is empty ({len(pts)} of {n_in} points left after filtering; need at least 100): "
-            "check the export stage and the opacity threshold",
-            s,
-            clusters={"filter": filt},
-        )
-    reasons: list[str] = []
-    notes: list[str] = []
-    if n_nonfinite:
-        reasons.append(f"{n_nonfinite} points with non-finite coordinates were dropped")
+    return pts, cols, is_centre, filt
 
-    # 1. clustering
+
+def _cluster_and_find_cube(pts, is_centre, centre_mask, s: TraitsConfig, calibrated: bool, size: float,
+                           notes: list[str]):
+    """DBSCAN clusters and the cube's cluster among them (clustered again tighter when the cube touches
+    another cluster). Returns ``(labels, eps, first_eps, cube_label, candidates)``."""
+    from plantsplat.traits.cluster import dbscan
+    from plantsplat.traits.cube_fit import find_cube_cluster
+
     labels, eps = dbscan(pts, calibrated=calibrated, eps=s.eps, min_points=s.min_points,
                          max_points=s.max_cluster_points, seed=s.seed,
                          eps_reference=None if centre_mask is None else pts[is_centre])
-    timings["dbscan"] = time.perf_counter() - t0
     n_clusters = int(labels.max() + 1)
     log.info("DBSCAN: %d clusters, %d noise points (eps %.3g)", n_clusters, int((labels < 0).sum()), eps)
-
-    # 2. the cube
-    t1 = time.perf_counter()
     cube_label, cands = find_cube_cluster(pts, labels, size if calibrated else None)
-    cube_eps = eps
+    first_eps = eps
     if cube_label is None and n_clusters > 0:
         # the cube may touch the plant or the ground remnants: split with a tighter radius once
         labels2, eps2 = dbscan(pts, calibrated=calibrated, eps=eps / 2, min_points=s.min_points,
@@ -382,77 +325,76 @@ def measure_traits(
         if lab2 is not None:
             labels, eps, cube_label, cands = labels2, eps2, lab2, cands2
             notes.append(f"the cube touched another cluster; clustered again with half the radius ({eps2:.3g})")
-    cube_fit = None
+    return labels, eps, first_eps, cube_label, cands
+
+
+def _fit_cube(cube_pts, s: TraitsConfig, calibrated: bool, size: float, splats: bool, reasons: list[str]):
+    """Fit the cube's faces to its cluster; the edge is taken from the planes or from the Gaussians'
+    envelope (``s.cube_edge``). Returns ``(fit or None, edge_method)``."""
+    from plantsplat.traits.cube_fit import fit_cube_planes, use_envelope
+
     if s.cube_edge not in ("auto", "planes", "envelope"):
         raise ValueError(f"cube_edge must be 'auto', 'planes' or 'envelope', got {s.cube_edge!r}")
-    envelope = s.cube_edge == "envelope" or (s.cube_edge == "auto" and (opacity is not None or centre_mask is not None))
+    envelope = s.cube_edge == "envelope" or (s.cube_edge == "auto" and splats)
     edge_method = "envelope" if envelope else "planes"
-    if cube_label is not None:
-        cube_fit = fit_cube_planes(pts[labels == cube_label], size_hint=size if calibrated else None, seed=s.seed)
-        if cube_fit is None:
-            reasons.append("the cube cluster was found but no pair of opposite faces could be fitted")
-        elif envelope:
-            use_envelope(cube_fit, pts[labels == cube_label])
-    timings["cube"] = time.perf_counter() - t1
-    cand_info = [
-        {"label": c.label, "points": c.points, "extents": np.round(c.extents, 4).tolist(), "accepted": c.accepted,
-         "score": round(c.score, 4), "why_not": c.why}
-        for c in cands[:8]
-    ]
-    clusters_info: dict = {"filter": filt, "eps": eps, "eps_first_pass": cube_eps, "min_points": s.min_points,
-                           "n_clusters": int(labels.max() + 1), "noise_points": int((labels < 0).sum()),
-                           "cube_label": cube_label, "cube_candidates": cand_info}
+    if cube_pts is None:
+        return None, edge_method
+    cube_fit = fit_cube_planes(cube_pts, size_hint=size if calibrated else None, seed=s.seed)
+    if cube_fit is None:
+        reasons.append("the cube cluster was found but no pair of opposite faces could be fitted")
+    elif envelope:
+        use_envelope(cube_fit, cube_pts)
+    return cube_fit, edge_method
 
-    # 3. scale and frame
-    scale: dict = {}
-    if calibrated:
-        T = np.eye(4)
-        scale.update({"source": "aruco", "scale": 1.0})
-        if cube_fit is not None:
-            decide_up(cube_fit, reference_up=np.array([0.0, 0.0, 1.0]))
-            edge_cm = cube_fit.edge
-            planes_cm = cube_fit.extra.get("edge_planes", edge_cm)
-            dis = (edge_cm / size - 1.0) * 100.0
-            tilt = float(np.degrees(np.arccos(np.clip(abs(cube_fit.up[2]), -1, 1))))
-            scale.update({"cube_edge_cm": edge_cm, "cube_edge_method": edge_method, "aruco_vs_cube_pct": dis,
-                          "cube_edge_cm_planes": planes_cm, "planes_scale": size / planes_cm,
-                          "aruco_vs_planes_pct": (planes_cm / size - 1.0) * 100.0, "cube_tilt_deg": tilt,
-                          "cube_bottom_z_cm": float(cube_fit.bottom_centre[2])})
-            if abs(dis) > s.scale_tolerance_pct:
-                reasons.append(f"the cube measures {edge_cm:.2f} cm by its {edge_method}, {dis:+.1f} % off the ArUco "
-                               f"scale (tolerance {s.scale_tolerance_pct} %): check the calibration")
-            if tilt > s.max_tilt_deg:
-                reasons.append(f"the cube's vertical is {tilt:.1f} deg from the frame's z axis: heights may be off")
-        else:
-            reasons.append("no cube found in the cloud: the ArUco scale could not be cross-checked")
-        pts_cm = pts
-    else:
-        if cube_fit is None:
-            return _failed(
-                "the cloud is not scaled (no ArUco calibration) and no cube was found in it: cannot give traits in "
-                "cm; make sure the 10 cm cube is in the masks and the reconstruction",
-                s, scale={"source": None}, clusters=clusters_info,
-            )
-        decide_up(cube_fit, camera_centres=camera_centres)
-        T, sc = cube_frame_transform(cube_fit, size)
-        scale.update({"source": f"cube_{edge_method}", "scale": sc, "cube_edge_units": cube_fit.edge,
-                      "cube_edge_method": edge_method,
-                      "up_method": cube_fit.up_method})
-        if not cube_fit.up_confident:
-            reasons.append(f"the vertical direction is uncertain ({cube_fit.up_method}): check the side view")
-        pts_cm = pts @ T[:3, :3].T + T[:3, 3]
-    if cube_fit is not None:
-        measured = [e for e in cube_fit.edge_per_axis if e is not None]
-        k = 1.0 if calibrated else scale["scale"]
-        scale["cube_edge_cm_per_axis"] = [None if e is None else e * k for e in cube_fit.edge_per_axis]
-        if len(measured) > 1 and (max(measured) - min(measured)) / np.mean(measured) > 0.03:
-            reasons.append("the cube's edges measured along different axes differ by more than 3 %: the cube is "
-                           "distorted in the reconstruction")
-    cube_json = None if cube_fit is None else cube_fit.to_dict()
 
-    # 4. the plant
-    t2 = time.perf_counter()
-    excl = set() if cube_label is None else {cube_label}
+def _aruco_scale(cube_fit, size: float, edge_method: str, s: TraitsConfig, reasons: list[str]) -> dict:
+    """The scale of a calibrated cloud, cross-checked against the cube found in it."""
+    from plantsplat.traits.cube_fit import decide_up
+
+    scale: dict = {"source": "aruco", "scale": 1.0}
+    if cube_fit is None:
+        reasons.append("no cube found in the cloud: the ArUco scale could not be cross-checked")
+        return scale
+    decide_up(cube_fit, reference_up=np.array([0.0, 0.0, 1.0]))
+    edge_cm = cube_fit.edge
+    planes_cm = cube_fit.extra.get("edge_planes", edge_cm)
+    dis = (edge_cm / size - 1.0) * 100.0
+    tilt = float(np.degrees(np.arccos(np.clip(abs(cube_fit.up[2]), -1, 1))))
+    scale.update({"cube_edge_cm": edge_cm, "cube_edge_method": edge_method, "aruco_vs_cube_pct": dis,
+                  "cube_edge_cm_planes": planes_cm, "planes_scale": size / planes_cm,
+                  "aruco_vs_planes_pct": (planes_cm / size - 1.0) * 100.0, "cube_tilt_deg": tilt,
+                  "cube_bottom_z_cm": float(cube_fit.bottom_centre[2])})
+    if abs(dis) > s.scale_tolerance_pct:
+        reasons.append(f"the cube measures {edge_cm:.2f} cm by its {edge_method}, {dis:+.1f} % off the ArUco "
+                       f"scale (tolerance {s.scale_tolerance_pct} %): check the calibration")
+    if tilt > s.max_tilt_deg:
+        reasons.append(f"the cube's vertical is {tilt:.1f} deg from the frame's z axis: heights may be off")
+    return scale
+
+
+def _cube_scale(cube_fit, size: float, edge_method: str, camera_centres, reasons: list[str]):
+    """Scale and frame of an uncalibrated cloud from the cube found in it. Returns ``(T, scale)``."""
+    from plantsplat.traits.cube_fit import cube_frame_transform, decide_up
+
+    decide_up(cube_fit, camera_centres=camera_centres)
+    T, sc = cube_frame_transform(cube_fit, size)
+    scale = {"source": f"cube_{edge_method}", "scale": sc, "cube_edge_units": cube_fit.edge,
+             "cube_edge_method": edge_method, "up_method": cube_fit.up_method}
+    if not cube_fit.up_confident:
+        reasons.append(f"the vertical direction is uncertain ({cube_fit.up_method}): check the side view")
+    return T, scale
+
+
+def _check_cube_axes(cube_fit, scale: dict, calibrated: bool, reasons: list[str]) -> None:
+    measured = [e for e in cube_fit.edge_per_axis if e is not None]
+    k = 1.0 if calibrated else scale["scale"]
+    scale["cube_edge_cm_per_axis"] = [None if e is None else e * k for e in cube_fit.edge_per_axis]
+    if len(measured) > 1 and (max(measured) - min(measured)) / np.mean(measured) > 0.03:
+        reasons.append("the cube's edges measured along different axes differ by more than 3 %: the cube is "
+                       "distorted in the reconstruction")
+
+
+def _clusters_below_ground(pts_cm, labels, excl: set) -> list[int]:
     below = []
     for i in range(int(labels.max() + 1)):
         if i in excl:
@@ -460,53 +402,182 @@ def measure_traits(
         zi = pts_cm[labels == i, 2]
         if len(zi) and np.quantile(zi, 0.9) < -1.0:
             below.append(i)
+    return below
+
+
+def _drop_aruco_box(pts_cm, labels, size: float, notes: list[str], clusters_info: dict):
+    """No cube cluster was recognised (a reconstruction too rough for the box test, or the cube fused with
+    the plant), but the ArUco calibration puts the cube exactly at the frame's origin, edges along x and y:
+    its points are left out before the plant is chosen."""
+    h = size / 2 + 0.5
+    in_cube = ((np.abs(pts_cm[:, 0]) < h) & (np.abs(pts_cm[:, 1]) < h)
+               & (pts_cm[:, 2] > -0.5) & (pts_cm[:, 2] < size + 0.5))
+    if not in_cube.any():
+        return labels
+    labels = labels.copy()
+    labels[in_cube] = -1
+    notes.append(f"{int(in_cube.sum())} points inside the ArUco cube's known box were left out")
+    clusters_info["points_in_aruco_cube_box"] = int(in_cube.sum())
+    return labels
+
+
+def _is_hanging_fruit(q, cols_q, s: TraitsConfig, top: float) -> bool:
+    red = fruit_mask(cols_q, s)
+    fruit = red.mean() >= s.fruit_join_fraction or (
+        s.fruit_join_unripe_cm > 0 and fruit_sized(q, s.fruit_join_unripe_cm)
+        and (red | unripe_fruit_mask(cols_q)).mean() >= s.fruit_join_fraction)
+    return bool(fruit) and q[:, 2].max() <= top
+
+
+def _join_fruit(pts_cm, cols, labels, sel, s: TraitsConfig, notes: list[str]) -> list:
+    """Fruit-coloured clusters left out as far from the plant but hanging within ``s.fruit_join_cm`` of
+    it join the plant (fruit on peduncles too thin to reconstruct). Updates ``sel`` in place."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(pts_cm[sel.mask])
+    top = float(pts_cm[sel.mask, 2].max())
+    joined = []
+    for e in sel.excluded:
+        if e["reason"] != "far from the plant":
+            continue
+        m = labels == e["label"]
+        q = pts_cm[m]
+        if not _is_hanging_fruit(q, cols[m], s, top):
+            continue
+        d, _ = tree.query(q, k=1, distance_upper_bound=s.fruit_join_cm)
+        if np.isfinite(d).any():
+            joined.append(e["label"])
+    if joined:
+        sel.mask = sel.mask | np.isin(labels, joined)
+        sel.excluded[:] = [e for e in sel.excluded if e["label"] not in joined]
+        sel.clusters.extend(joined)
+        notes.append(f"{len(joined)} fruit-coloured cluster(s) (red or unripe) hanging within {s.fruit_join_cm:g} cm "
+                     "of the plant joined it (fruit on peduncles too thin to reconstruct)")
+    return joined
+
+
+def _plant_traits(P, P_centres, C_centres, soil, s: TraitsConfig, notes: list[str]):
+    traits: dict = traitdefs.geometric_traits(P, soil_z=soil)
+    rob = traitdefs.geometric_traits(P, trim=s.trim, soil_z=soil)
+    robust = {k: rob[k] for k in ROBUST_KEYS}
+    fruit_centres = None
+    if C_centres is not None:
+        traits["fruit_count"], fruit_centres = count_fruit(P_centres, C_centres, s)
+    else:
+        traits["fruit_count"] = None
+        notes.append("no colours in the cloud: fruit not counted")
+    return traits, robust, fruit_centres
+
+
+def measure_traits(
+    points: np.ndarray,
+    colors: np.ndarray | None = None,
+    *,
+    calibrated: bool,
+    opacity: np.ndarray | None = None,
+    scales: np.ndarray | None = None,
+    camera_centres: np.ndarray | None = None,
+    settings: TraitsConfig | None = None,
+    cube: CubeSpec | None = None,
+    centre_mask: np.ndarray | None = None,
+    soil_z: float | None = None,
+) -> TraitResult:
+    """Measure plant traits from a point cloud of a plant and the calibration cube.
+
+    The steps: filter the cloud, cluster it (DBSCAN), find and fit the cube, put the cloud in cm with z up
+    (the ArUco calibration, cross-checked by the cube, or the cube alone), choose the plant's clusters,
+    then measure.
+
+    Args:
+        points: ``[N, 3]`` positions (Gaussian centres or any points).
+        colors: ``[N, 3]`` uint8 RGB, or None (then no fruit count).
+        calibrated: True when ``points`` are already in the ArUco-calibrated frame (cm, z up, ground
+            at z = 0); False for an arbitrary frame and scale (the cube then gives both).
+        opacity: ``[N]`` Gaussian opacities (0..1) to filter by ``settings.opacity_min``; None keeps all.
+        scales: ``[N, 3]`` Gaussian extents (same units as points) for ``settings.max_scale_cm``.
+        camera_centres: ``[M, 3]`` camera positions in the same frame (helps find "up" when uncalibrated).
+        settings: :class:`TraitsConfig`.
+        cube: the cube's geometry (only ``size`` is used); defaults to :class:`CubeSpec` ().
+        centre_mask: ``[N]`` bool, True for Gaussian centres when the other points are extent samples
+            (:func:`gaussian_extent_points`); fruit are counted on centres only. None: all points.
+        soil_z: the soil surface's height in a calibrated cloud (cm): the height is measured from it (else
+            the plant's z extent).
+
+    Returns:
+        A :class:`TraitResult`; ``quality`` is 'failed' (and every trait None) when the traits cannot
+        be measured (empty cloud, no cube in an uncalibrated cloud, no plant).
+
+    Example:
+        >>> res = measure_traits(np.zeros((0, 3)), None, calibrated=True)
+        >>> res.quality, res.reasons[0][:26]
+        ('failed', 'the point cloud is empty (')
+    """
+    from plantsplat.traits.cluster import far_clusters_reason, select_plant
+
+    s = settings or TraitsConfig()
+    size = float((cube or CubeSpec()).size) if cube is not None else s.cube_size_cm
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    pts, cols, is_centre, filt = _filter_cloud(points, colors, opacity, scales, centre_mask, s, calibrated)
+    if len(pts) < 100:
+        return _failed(
+            f"the point cloud is empty ({len(pts)} of {filt['input_points']} points left after filtering; need at "
+            "least 100): check the export stage and the opacity threshold",
+            s,
+            clusters={"filter": filt},
+        )
+    reasons: list[str] = []
+    notes: list[str] = []
+    if filt["non_finite"]:
+        reasons.append(f"{filt['non_finite']} points with non-finite coordinates were dropped")
+
+    labels, eps, first_eps, cube_label, cands = _cluster_and_find_cube(pts, is_centre, centre_mask, s, calibrated,
+                                                                       size, notes)
+    timings["dbscan"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    cube_fit, edge_method = _fit_cube(None if cube_label is None else pts[labels == cube_label], s, calibrated, size,
+                                      opacity is not None or centre_mask is not None, reasons)
+    timings["cube"] = time.perf_counter() - t1
+    cand_info = [
+        {"label": c.label, "points": c.points, "extents": np.round(c.extents, 4).tolist(), "accepted": c.accepted,
+         "score": round(c.score, 4), "why_not": c.why}
+        for c in cands[:8]
+    ]
+    clusters_info: dict = {"filter": filt, "eps": eps, "eps_first_pass": first_eps, "min_points": s.min_points,
+                           "n_clusters": int(labels.max() + 1), "noise_points": int((labels < 0).sum()),
+                           "cube_label": cube_label, "cube_candidates": cand_info}
+
+    if calibrated:
+        T, scale, pts_cm = np.eye(4), _aruco_scale(cube_fit, size, edge_method, s, reasons), pts
+    elif cube_fit is None:
+        return _failed(
+            "the cloud is not scaled (no ArUco calibration) and no cube was found in it: cannot give traits in "
+            "cm; make sure the 10 cm cube is in the masks and the reconstruction",
+            s, scale={"source": None}, clusters=clusters_info,
+        )
+    else:
+        T, scale = _cube_scale(cube_fit, size, edge_method, camera_centres, reasons)
+        pts_cm = pts @ T[:3, :3].T + T[:3, 3]
+    if cube_fit is not None:
+        _check_cube_axes(cube_fit, scale, calibrated, reasons)
+    cube_json = None if cube_fit is None else cube_fit.to_dict()
+
+    t2 = time.perf_counter()
+    excl = set() if cube_label is None else {cube_label}
+    below = _clusters_below_ground(pts_cm, labels, excl)
     excl |= set(below)
     if below:
         notes.append(f"{len(below)} cluster(s) below the ground plane left out")
         clusters_info["below_ground"] = below
     if calibrated and cube_fit is None:
-        # no cube cluster was recognised (a reconstruction too rough for the box test, or the cube fused
-        # with the plant), but the ArUco calibration puts the cube exactly at the frame's origin, edges
-        # along x and y: its points are left out before the plant is chosen
-        h = size / 2 + 0.5
-        in_cube = (np.abs(pts_cm[:, 0]) < h) & (np.abs(pts_cm[:, 1]) < h) & (pts_cm[:, 2] > -0.5) & (pts_cm[:, 2] < size + 0.5)
-        if in_cube.any():
-            labels = labels.copy()
-            labels[in_cube] = -1
-            notes.append(f"{int(in_cube.sum())} points inside the ArUco cube's known box were left out")
-            clusters_info["points_in_aruco_cube_box"] = int(in_cube.sum())
+        labels = _drop_aruco_box(pts_cm, labels, size, notes, clusters_info)
     sel = select_plant(pts_cm, labels, exclude=excl, merge_distance=s.merge_distance_cm,
                        min_cluster_fraction=s.min_cluster_fraction, min_cluster_points=s.min_points)
     if sel is None:
         return _failed("no plant cluster found in the cloud (only the cube or noise): check the masks and export",
                        s, scale=scale, cube=cube_json, clusters=clusters_info)
+    joined = _join_fruit(pts_cm, cols, labels, sel, s, notes) if cols is not None and s.fruit_join_cm > 0 else []
     plant_mask = sel.mask
-    joined = []
-    if cols is not None and s.fruit_join_cm > 0:
-        from scipy.spatial import cKDTree
-
-        tree = cKDTree(pts_cm[plant_mask])
-        top = float(pts_cm[plant_mask, 2].max())
-        for e in sel.excluded:
-            if e["reason"] != "far from the plant":
-                continue
-            m = labels == e["label"]
-            q = pts_cm[m]
-            red = fruit_mask(cols[m], s)
-            fruit = red.mean() >= s.fruit_join_fraction or (
-                s.fruit_join_unripe_cm > 0 and fruit_sized(q, s.fruit_join_unripe_cm)
-                and (red | unripe_fruit_mask(cols[m])).mean() >= s.fruit_join_fraction)
-            if not fruit or q[:, 2].max() > top:
-                continue
-            d, _ = tree.query(q, k=1, distance_upper_bound=s.fruit_join_cm)
-            if np.isfinite(d).any():
-                joined.append(e["label"])
-        if joined:
-            plant_mask = plant_mask | np.isin(labels, joined)
-            sel.excluded[:] = [e for e in sel.excluded if e["label"] not in joined]
-            sel.clusters.extend(joined)
-            notes.append(f"{len(joined)} fruit-coloured cluster(s) (red or unripe) hanging within {s.fruit_join_cm:g} cm "
-                         "of the plant joined it (fruit on peduncles too thin to reconstruct)")
     far = far_clusters_reason(sel.excluded, int(plant_mask.sum()))  # what is still left out after fruit joined
     if far:
         sel.reasons.append(far)
@@ -515,31 +586,22 @@ def measure_traits(
                           "excluded": sel.excluded[:20], "plant_points": int(plant_mask.sum())})
     P = pts_cm[plant_mask]  # [M, 3]
     C = None if cols is None else cols[plant_mask]
-    P_centres = pts_cm[plant_mask & is_centre]
     if len(P) < 50:
         return _failed(f"the plant has only {len(P)} points: the reconstruction is too sparse to measure",
                        s, scale=scale, cube=cube_json, clusters=clusters_info)
     if P[:, 2].min() < -1.0:
         reasons.append(f"plant points reach {P[:, 2].min():.1f} cm below the ground plane: check the vertical")
 
-    # 5. traits
-    traits: dict = traitdefs.geometric_traits(P)
-    rob = traitdefs.geometric_traits(P, trim=s.trim)
-    robust = {k: rob[k] for k in ROBUST_KEYS}
-    fruit_centres = None
-    if C is not None:
-        traits["fruit_count"], fruit_centres = count_fruit(P_centres, cols[plant_mask & is_centre], s)
-    else:
-        traits["fruit_count"] = None
-        notes.append("no colours in the cloud: fruit not counted")
+    soil = soil_z if calibrated else None
+    traits, robust, fruit_centres = _plant_traits(P, pts_cm[plant_mask & is_centre],
+                                                  None if C is None else cols[plant_mask & is_centre], soil, s, notes)
     timings["plant_and_traits"] = time.perf_counter() - t2
     timings["total"] = time.perf_counter() - t0
-    quality = "warning" if reasons else "ok"
     cube_pts = None if cube_label is None else pts_cm[labels == cube_label]
     return TraitResult(
-        traits=traits, robust=robust, quality=quality, reasons=reasons, scale=scale, cube=cube_json,
-        clusters=clusters_info, settings=asdict(s), plant_points=P, plant_colors=C, cube_points=cube_pts,
-        fruit_centres=fruit_centres, transform=T, timings=timings, notes=notes,
+        traits=traits, robust=robust, quality="warning" if reasons else "ok", reasons=reasons, scale=scale,
+        cube=cube_json, clusters=clusters_info, settings=asdict(s), plant_points=P, plant_colors=C,
+        cube_points=cube_pts, fruit_centres=fruit_centres, transform=T, timings=timings, notes=notes, soil_z=soil,
     )
 
 
@@ -572,9 +634,9 @@ def read_splat_extent_cloud(path: str | Path, opacity_min: float, k_sigma: float
     """Point cloud of the opaque Gaussians of an Inria-layout ``splat.ply`` with their extents
     (see :func:`gaussian_extent_points`; ``k_sigma`` 0: the centres alone); colours from the SH DC term.
     The PLY's opacity is a logit: it is mapped through the sigmoid before ``opacity_min`` applies."""
-    from plantsplat.train.export import read_splat_ply
+    from plantsplat.ply import read_splat
 
-    g = read_splat_ply(path)
+    g = read_splat(path)
     op = 1.0 / (1.0 + np.exp(-np.asarray(g["opacities"], np.float64)))  # [N]
     keep = op >= opacity_min
     means = np.asarray(g["means"], np.float64)[keep]
@@ -587,45 +649,6 @@ def read_splat_extent_cloud(path: str | Path, opacity_min: float, k_sigma: float
     return {"xyz": pts, "rgb": np.tile(rgb, (len(pts) // max(len(means), 1), 1)), "opacity": None, "scales": None,
             "centre": centre,
             "gaussians": int(keep.sum())}
-
-
-def _is_splat_ply(path: Path) -> bool:
-    """True when the PLY's header has an Inria-layout Gaussian's scales, rotation and DC colour."""
-    with open(path, "rb") as f:
-        head = f.read(16384)
-    end = head.find(b"end_header")
-    names = {ln.split()[-1] for ln in head[: max(end, 0)].split(b"\n") if ln.startswith(b"property")}
-    return {b"scale_0", b"rot_0", b"f_dc_0", b"opacity"} <= names
-
-
-def read_points_ply(path: str | Path) -> dict[str, np.ndarray | None]:
-    """Read an exported point cloud: ``{'xyz' [N, 3], 'rgb' [N, 3] uint8 | None, 'opacity' [N] | None,
-    'scales' [N, 3] | None}``. Accepts plantsplat's ``points.ply`` and any PLY with x, y, z vertices.
-    """
-    from plyfile import PlyData
-
-    path = Path(path)
-    if not path.is_file():
-        raise PlantsplatError(f"{path}: point cloud not found; run `plantsplat export` first or pass --points")
-    try:
-        ply = PlyData.read(str(path))
-        v = ply["vertex"]
-    except Exception as exc:  # plyfile raises many types on corrupt files
-        raise PlantsplatError(f"{path}: not a readable PLY point cloud ({type(exc).__name__}); re-run the export") from exc
-    names = v.data.dtype.names or ()
-    if not {"x", "y", "z"} <= set(names):
-        raise PlantsplatError(f"{path}: PLY has no x, y, z vertex properties; give a point cloud")
-    xyz = np.stack([np.asarray(v[k], dtype=np.float64) for k in "xyz"], axis=1)
-    rgb = None
-    if {"red", "green", "blue"} <= set(names):
-        rgb = np.stack([np.asarray(v[k]) for k in ("red", "green", "blue")], axis=1)
-        if rgb.dtype != np.uint8:
-            rgb = np.clip(rgb * (255.0 if rgb.max() <= 1.0 else 1.0), 0, 255).astype(np.uint8)
-    opacity = np.asarray(v["opacity"], dtype=np.float64) if "opacity" in names else None
-    scales = None
-    if {"scale_0", "scale_1", "scale_2"} <= set(names):
-        scales = np.stack([np.asarray(v[f"scale_{i}"], dtype=np.float64) for i in range(3)], axis=1)
-    return {"xyz": xyz, "rgb": rgb, "opacity": opacity, "scales": scales}
 
 
 def traits_csv_text(result_json: dict, plant: str) -> str:
@@ -664,25 +687,27 @@ def traits_workspace(ws, cfg=None, *, points_path: str | Path | None = None, cal
     """Run the traits stage on a workspace; returns the ``traits.json`` content.
 
     Reads ``WS/export/points.ply`` (or ``points_path``) and ``WS/poses.json`` (``scale_source``
-    'aruco' means calibrated), writes ``traits.json``, ``traits.csv`` and ``traits.png``. Raises
-    :class:`PlantsplatError` after writing a 'failed' ``traits.json`` when nothing can be measured.
+    'aruco' means calibrated), writes ``traits.json``, ``traits.csv`` and ``traits.png``. The height is
+    measured from the soil (:func:`plantsplat.traits.checks.soil_level`). ``quality`` is ``failed`` when
+    nothing could be measured or a check of a stage or of the measurement fails (the files are written
+    all the same; the commands then exit with :data:`plantsplat.errors.EXIT_RESULT_FAILED`).
 
-    Example:
-        >>> from plantsplat.workspace import Workspace
-        >>> out = traits_workspace(Workspace("ws/plant_01"))      # doctest: +SKIP
-        >>> out["height_cm"], out["quality"]                     # doctest: +SKIP
-        (23.41, 'ok')
+    Usage:
+        from plantsplat.workspace import Workspace
+        out = traits_workspace(Workspace("ws/plant_01"))
+        out["height_cm"], out["quality"]
     """
     from plantsplat.io import read_json, write_json_atomic, write_text_atomic
+    from plantsplat.ply import is_splat, read_point_cloud
     from plantsplat.workspace import Workspace
 
     ws = ws if isinstance(ws, Workspace) else Workspace(ws)
-    s = cfg if isinstance(cfg, TraitSettings) else TraitSettings()
+    s = cfg if isinstance(cfg, TraitsConfig) else TraitsConfig()
     if points_path:
         ply = Path(points_path)
         if not ply.is_file():
             raise PlantsplatError(f"{ply}: point cloud not found; give an exported points.ply or splat.ply")
-        extents = _is_splat_ply(ply)  # a splat PLY is read as Gaussians (its opacity is a logit), at any sigma
+        extents = is_splat(ply)  # a splat PLY is read as Gaussians (its opacity is a logit), at any sigma
     elif s.extent_sigma > 0 and (ws.splat_ply.is_file() or not ws.points_ply.is_file()):
         ply, extents = ws.splat_ply, True
         ws.require(ply, "export")
@@ -706,24 +731,46 @@ def traits_workspace(ws, cfg=None, *, points_path: str | Path | None = None, cal
         log.info("traits: %s (%d Gaussians%s)", ply, data["gaussians"],
                  f" with their extents at {s.extent_sigma:.2g} sigma" if s.extent_sigma > 0 else ", centres only")
     else:
-        data = read_points_ply(ply)
+        data = read_point_cloud(ply, "run `plantsplat export` first or pass --points")
     log.info("traits: %s (%d points, %s)", ply, len(data["xyz"]), "calibrated cm" if calibrated else "unscaled")
-    cams = None if calibrated else _camera_centres(ws)
+    cams = _camera_centres(ws)
+    soil_z, soil_source = soil_level(ws, calibrated)
     res = measure_traits(data["xyz"], data["rgb"], calibrated=calibrated, opacity=data["opacity"],
-                         scales=data["scales"], camera_centres=cams, settings=s, centre_mask=data.get("centre"))
+                         scales=data["scales"], camera_centres=None if calibrated else cams, settings=s,
+                         centre_mask=data.get("centre"), soil_z=soil_z)
     out = res.to_json()
     out["input"] = str(ply)
+    out["soil_source"] = soil_source
     out["scale"]["calibrated_input"] = bool(calibrated)
+    _judge(out, res, ws, cams if calibrated else None)
     write_json_atomic(ws.traits_json, out)
     write_text_atomic(ws.traits_csv, traits_csv_text(out, ws.root.name))
-    if res.quality == "failed":
-        raise PlantsplatError(f"{ply}: {res.reasons[0]} (details in {ws.traits_json})")
-    if figure:
+    if figure and res.plant_points is not None:
         from plantsplat.traits.figures import traits_figure
 
         traits_figure(res, ws.traits_png, title=ws.root.name)
-    for r in res.reasons:
+    if out["quality"] == "failed":
+        log.error("traits: FAILED: %s (details in %s)", "; ".join(out["quality_reasons"][:3]), ws.traits_json)
+    for r in out["quality_reasons"] if out["quality"] != "failed" else ():
         log.warning("traits: %s", r)
     for r in res.notes:
         log.info("traits: %s", r)
     return out
+
+
+def _judge(out: dict, res: TraitResult, ws, cams: np.ndarray | None) -> None:
+    """Every stage's checks and the measurement's own (:mod:`plantsplat.traits.checks`) into ``out``'s ``checks``,
+    ``quality`` and ``quality_reasons``."""
+    from plantsplat.checks import quality
+    from plantsplat.traits.checks import result_checks, stage_checks
+
+    checks = stage_checks(ws)
+    if res.plant_points is not None:
+        top = float(res.plant_points[:, 2].max())
+        checks += result_checks(res.traits, len(res.plant_points), top if cams is not None else None,
+                                None if cams is None else float(cams[:, 2].max()))
+    out["checks"] = [c.as_dict() for c in checks]
+    verdict = quality(checks)
+    order = ["ok", "warning", "failed"]
+    out["quality"] = max(res.quality, verdict, key=order.index)
+    out["quality_reasons"] = [f"check {c.line()}" for c in checks if not c.passed] + list(res.reasons)

@@ -22,22 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-TRAIT_LABELS = {
-    "height_cm": "Height",
-    "width1_cm": "Width 1",
-    "width2_cm": "Width 2",
-    "canopy_volume_cm3": "Canopy volume",
-    "canopy_area_cm2": "Canopy area",
-    "fruit_count": "Fruit count",
-}
-TRAIT_UNITS = {
-    "height_cm": "cm",
-    "width1_cm": "cm",
-    "width2_cm": "cm",
-    "canopy_volume_cm3": "cm^3",
-    "canopy_area_cm2": "cm^2",
-    "fruit_count": "",
-}
+from plantsplat.traitdefs import TRAIT_LABELS, TRAIT_UNITS
 
 
 def _pair(truth, estimate) -> tuple[np.ndarray, np.ndarray]:
@@ -221,8 +206,8 @@ def scatter_plots(
     """The paper's figure: one panel per trait, estimate vs truth, the fitted line (red, solid), the
     ideal y = x (black, dashed) and R2 / RMSE / MAPE in the corner. Written atomically as PNG.
 
-    Example:
-        >>> scatter_plots(estimates, truths, ["height_cm"], "bench/scatter.png")   # doctest: +SKIP
+    Usage:
+        scatter_plots(estimates, truths, ["height_cm"], "bench/scatter.png")
     """
     import matplotlib
 

@@ -1,0 +1,80 @@
+"""What the segment stage keeps of the object it found, and cutting other images of the capture with it.
+
+``WS/.plantsplat/segment/object.npz`` holds the plant flags and the geometry of the 3D object
+(:class:`plantsplat.segment.object3d.ObjectModel`); ``WS/.plantsplat/segment/scene/`` the quick model
+it was found in. :func:`segment_images` uses them to cut renders of the capture's cameras (the PBR
+baseline of the training evaluation) exactly as the frames were cut.
+
+Example:
+    >>> from plantsplat.workspace import Workspace
+    >>> scene_dir(Workspace("ws/plant_01"))
+    PosixPath('ws/plant_01/.plantsplat/segment/scene')
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from plantsplat.errors import PlantsplatError
+from plantsplat.io import atomic_path
+from plantsplat.segment.config import SegmentConfig
+from plantsplat.workspace import Workspace
+
+OBJECT_FILE = ".plantsplat/segment/object.npz"
+SCENE_DIR = ".plantsplat/segment/scene"
+
+
+def scene_dir(ws: Workspace) -> Path:
+    """Folder of the quick whole-scene model (:mod:`plantsplat.segment.scene`)."""
+    return ws.root / SCENE_DIR
+
+
+def save_object(ws: Workspace, obj) -> None:
+    """The plant flags and geometry of the 3D object, beside the quick model (segmenting renders reuses them)."""
+    path = ws.root / OBJECT_FILE
+    with atomic_path(path, suffix=".npz") as tmp:
+        np.savez(tmp, plant=obj.plant, axis=obj.axis, up=obj.up, info=json.dumps(obj.info),
+                 cube=json.dumps(None if obj.cube is None else {"size": obj.cube.size, "marker_size": obj.cube.marker_size,
+                                                                "dictionary": obj.cube.dictionary,
+                                                                "face_ids": list(obj.cube.face_ids)}))
+
+
+def load_object(ws: Workspace):
+    """The 3D object the segment stage found (:func:`save_object`) with its quick model, and the cameras by name."""
+    from plantsplat.cube import CubeSpec
+    from plantsplat.segment.object3d import ObjectModel
+    from plantsplat.train.checkpoint import load_model
+    from plantsplat.train.data import load_scene
+
+    path = ws.root / OBJECT_FILE
+    if not path.is_file():
+        raise PlantsplatError(f"{path}: missing; run `plantsplat segment {ws.root}` (the 3d backend) first")
+    data = np.load(path)
+    params, _ = load_model(ws, scene_dir(ws))
+    cube = json.loads(str(data["cube"]))
+    obj = ObjectModel(params={k: v.detach().cpu() for k, v in params.items()}, plant=data["plant"],
+                      cube=None if cube is None else CubeSpec(**{**cube, "face_ids": tuple(cube["face_ids"])}),
+                      axis=data["axis"], up=data["up"], info=json.loads(str(data["info"])))
+    return obj, {v.name: v for v in load_scene(ws, need_masks=False, load_images=False).views}
+
+
+def segment_images(ws: Workspace, images: dict[str, np.ndarray], band_px: int | None = None) -> dict[str, np.ndarray]:
+    """Masks ``{name: [h, w] bool}`` of images taken through the workspace's pinhole cameras (such as renders of its
+    test views, ``[h, w, 3]`` uint8 at any size), cut as the segment stage cuts the frames: the 3D object it
+    found, drawn into each camera and refined on the image."""
+    import cv2
+
+    from plantsplat.segment.frame import object_prior, refine
+
+    obj, views = load_object(ws)
+    band = SegmentConfig().refine_band_px if band_px is None else band_px
+    out = {}
+    for name, rgb in images.items():
+        prior = np.maximum(*object_prior(obj, views[name]))
+        if prior.shape != rgb.shape[:2]:
+            prior = cv2.resize(prior, (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_AREA)
+        out[name] = refine(rgb, prior, band) if band > 0 else prior > 0.5
+    return out

@@ -1,0 +1,128 @@
+"""The checks that decide ``traits.json``'s quality, and the soil the height is measured from.
+
+A result is only as good as every stage under it, so the traits stage gathers checks of each
+(:class:`plantsplat.checks.Check`, recorded with their values in ``traits.json``):
+
+- the masks (``segment.json``): how sure the segmenter was of its frames (its 3D object and the frames'
+  own edges agree);
+- the model (``metrics.json``): how much of the held-out frames' masks the trained object model draws
+  (a mask that takes room or misses plant tissue the other frames show is not drawn by a model that
+  must agree with every frame), and its foreground PSNR;
+- the measurement: enough points on the plant, a plant of plausible size against the cube and the
+  camera's orbit (a plant cannot stand taller than the cameras that look down on it). The cube's
+  measured size against the ArUco scale is a warning of :func:`plantsplat.traits.measure.measure_traits`.
+
+The thresholds live in :class:`QualityThresholds`; each was set from the values measured on
+plantsplat's own synthetic captures and the foreign renders (``benchmarks/bench_e2e.py``), between
+what correct runs gave and what wrong ones gave.
+
+Example:
+    >>> checks = result_checks({"height_cm": 1.2, "width1_cm": 2.9}, plant_points=142, plant_top_cm=13.0,
+    ...                        camera_top_cm=45.0)
+    >>> sorted(c.name for c in checks if not c.passed)
+    ['plant_height_cm', 'plant_points']
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from plantsplat.checks import Check
+from plantsplat.errors import PlantsplatError
+from plantsplat.io import read_json
+from plantsplat.log import get_logger
+
+log = get_logger(__name__)
+
+
+@dataclass(frozen=True)
+class QualityThresholds:
+    """What a result must show to be trusted (``fail``) or left unflagged (``warn``)."""
+
+    masks_confidence_mean: float = 0.70
+    """warn: mean confidence of the segmenter over the frames below this."""
+    masks_unsure_share: float = 0.25
+    """fail: share of the frames whose confidence is below ``unsure_frame`` above this."""
+    unsure_frame: float = 0.6
+    """A frame's confidence below this counts as unsure."""
+    mask_rendered: float = 0.75
+    """fail: the trained object model draws less than this share of its held-out frames' masks."""
+    foreground_psnr_db: float = 16.0
+    """warn: foreground PSNR of the object model on its held-out frames below this."""
+    plant_points: int = 2000
+    """fail: fewer points on the plant than this."""
+    plant_height_cube_edges: float = 0.3
+    """fail: a plant shorter than this many cube edges (3 cm) is not what was filmed."""
+
+
+def soil_level(ws, calibrated: bool) -> tuple[float | None, str]:
+    """The soil surface's height (cm, cube frame) and where it comes from; ``(None, why)`` when there is none.
+
+    The segment stage's pot (found as rings in its quick 3D model) gives it; without that (imported masks)
+    the pot is looked for among the poses stage's SfM points.
+    """
+    if not calibrated:
+        return None, "none: the cloud is not calibrated, so the height is the plant's extent"
+    if ws.segment_json.is_file():
+        pot = (((read_json(ws.segment_json).get("capture") or {}).get("object") or {}).get("pot")) or {}
+        if pot.get("soil_z_cm") is not None:
+            return float(pot["soil_z_cm"]), "the pot the segment stage found in 3D"
+    found = _pot_from_sfm(ws)
+    if found is not None:
+        return found, "the pot found among the SfM points"
+    return None, "no pot found: the height is the plant's extent (a plant in the ground)"
+
+
+def _pot_from_sfm(ws) -> float | None:
+    from plantsplat.segment.object3d import find_pot, orbit_axis
+    from plantsplat.train.data import load_scene
+
+    try:
+        scene = load_scene(ws, need_masks=False, load_images=False)
+    except PlantsplatError:
+        return None
+    if len(scene.points) < 50:
+        return None
+    axis = orbit_axis([np.linalg.inv(v.viewmat) for v in scene.views])
+    pot = find_pot(scene.points, axis[:2])
+    return None if pot is None else pot.soil_z
+
+
+def stage_checks(ws, t: QualityThresholds = QualityThresholds()) -> list[Check]:
+    """Checks of the masks and of the trained model, from ``segment.json`` and ``metrics.json`` when present."""
+    out = []
+    if ws.segment_json.is_file():
+        seg = read_json(ws.segment_json)
+        conf = [r["confidence"] for r in seg.get("frames", []) if r.get("confidence") is not None]
+        if conf:
+            out.append(Check("masks_confidence_mean", float(np.mean(conf)), t.masks_confidence_mean, ">=",
+                             "the segmenter's mean confidence over the frames", severity="warn"))
+            unsure = float(np.mean(np.array(conf) < t.unsure_frame))
+            out.append(Check("masks_unsure_share", unsure, t.masks_unsure_share, "<=",
+                             f"share of frames whose masks the segmenter was unsure of (confidence < {t.unsure_frame})"))
+    if ws.metrics_json.is_file():
+        m = read_json(ws.metrics_json)
+        agree = m.get("mask_agreement") or {}
+        if agree.get("mask_rendered") is not None:
+            out.append(Check("mask_rendered", agree["mask_rendered"], t.mask_rendered, ">=",
+                             "share of the held-out frames' masks the object model draws"))
+        fg = (m.get("foreground") or {}).get("psnr")
+        if fg is not None:
+            out.append(Check("foreground_psnr_db", fg, t.foreground_psnr_db, ">=",
+                             "object model on its held-out frames, foreground only", severity="warn"))
+    return out
+
+
+def result_checks(traits: dict, plant_points: int, plant_top_cm: float | None, camera_top_cm: float | None,
+                  cube_cm: float = 10.0, t: QualityThresholds = QualityThresholds()) -> list[Check]:
+    """Checks of the measurement itself (see the module docstring); heights in the calibrated frame (cm)."""
+    out = [Check("plant_points", plant_points, t.plant_points, ">=", "points on the plant after clustering")]
+    h = traits.get("height_cm")
+    if h is not None:
+        out.append(Check("plant_height_cm", h, t.plant_height_cube_edges * cube_cm, ">=", "against the cube's size"))
+    if plant_top_cm is not None and camera_top_cm is not None:
+        out.append(Check("plant_top_below_cameras_cm", camera_top_cm - plant_top_cm, 0.0, ">=",
+                         "the highest cameras look down on the plant, so its top is below them"))
+    return out

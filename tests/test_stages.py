@@ -1,0 +1,97 @@
+"""The stage records (:mod:`plantsplat.stages`): when a stage runs again, when it is skipped, and that a
+failed or interrupted stage is never built on."""
+
+from __future__ import annotations
+
+import pytest
+
+from plantsplat.errors import PlantsplatError
+from plantsplat.stages import read_record, require_ok, run_stage
+from plantsplat.workspace import Workspace
+
+
+@pytest.fixture()
+def ws(tmp_path):
+    ws = Workspace(tmp_path / "ws")
+    ws.root.mkdir()
+    (ws.root / "in.txt").write_text("input")
+    return ws
+
+
+def _stage(ws, calls, config=None, fail=None, **kw):
+    """A stage that copies in.txt to out.txt (upper-cased), recording each run and its resume flag."""
+
+    def work(resume):
+        calls.append(resume)
+        if fail is not None:
+            raise fail
+        (ws.root / "out.txt").write_text((ws.root / "in.txt").read_text().upper())
+        return {"n": 1, "skip": [1, 2]}
+
+    return run_stage(ws, "copy", config or {"a": 1}, [ws.root / "in.txt"], [ws.root / "out.txt"], work, **kw)
+
+
+def test_runs_once_then_is_up_to_date(ws):
+    calls = []
+    assert _stage(ws, calls) == {"n": 1, "skip": [1, 2]}
+    again = _stage(ws, calls)
+    assert calls == [False] and again["up_to_date"] and again["n"] == 1
+    rec = read_record(ws, "copy")
+    assert rec["status"] == "ok" and rec["config"] == {"a": 1} and "in.txt" in rec["inputs"]
+    _stage(ws, calls, force=True)
+    assert calls == [False, False]
+
+
+@pytest.mark.parametrize("change", ["option", "input", "output_damaged", "output_deleted"])
+def test_runs_again_when_anything_it_depends_on_changed(ws, change):
+    calls = []
+    _stage(ws, calls)
+    config = None
+    if change == "option":
+        config = {"a": 2}
+    elif change == "input":
+        (ws.root / "in.txt").write_text("another input")
+    elif change == "output_damaged":
+        (ws.root / "out.txt").write_text("IN")
+    else:
+        (ws.root / "out.txt").unlink()
+    _stage(ws, calls, config=config)
+    assert calls == [False, False]
+    assert (ws.root / "out.txt").read_text() == (ws.root / "in.txt").read_text().upper()
+
+
+def test_a_failed_stage_runs_again_and_is_not_built_on(ws):
+    calls = []
+    _stage(ws, calls)
+    with pytest.raises(PlantsplatError, match="no luck"):
+        _stage(ws, calls, config={"a": 2}, fail=PlantsplatError("no luck"))
+    rec = read_record(ws, "copy")
+    assert rec["status"] == "failed" and rec["reason"] == "no luck"
+    with pytest.raises(PlantsplatError, match=r"the copy stage failed: no luck; fix that and run `plantsplat copy"):
+        require_ok(ws, "copy")
+    # the old outputs are still there and match their fingerprints, but the record says failed: it runs again
+    _stage(ws, calls)
+    assert calls == [False, False, False] and read_record(ws, "copy")["status"] == "ok"
+    require_ok(ws, "copy")
+
+
+def test_an_interrupted_stage_resumes_with_the_same_options_only(ws):
+    calls = []
+    with pytest.raises(KeyboardInterrupt):
+        _stage(ws, calls, fail=KeyboardInterrupt())
+    assert read_record(ws, "copy")["status"] == "running"
+    with pytest.raises(PlantsplatError, match="the copy stage running"):
+        require_ok(ws, "copy")
+    with pytest.raises(KeyboardInterrupt):
+        _stage(ws, calls, fail=KeyboardInterrupt())
+    _stage(ws, calls, config={"a": 2})  # other options: nothing of the interrupted run is reused
+    assert calls == [False, True, False]
+
+
+def test_no_record_is_left_to_the_stage_own_checks(ws):
+    require_ok(ws, "frames")  # images put there by hand: the next stage checks its inputs itself
+    (ws.root / ".plantsplat" / "stages").mkdir(parents=True)
+    (ws.root / ".plantsplat" / "stages" / "copy.json").write_text("{truncated")
+    calls = []
+    _stage(ws, calls)  # an unreadable record means: run again
+    assert calls == [False]
