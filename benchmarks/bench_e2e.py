@@ -45,7 +45,7 @@ def run_capture(label: str, video: Path, truth: Path, ws: Path, mode: str = "run
     t0 = time.perf_counter()
     code = 0
     if mode == "traits":
-        code = cli(["traits", str(ws)])
+        code = cli(["traits", str(ws), "--force"])  # the stage's record knows its options, not the code
         if code in (0, 4) and cli(["evaluate", str(ws), "--ground-truth", str(truth)]) != 0:
             code = 1
     elif mode == "run":
@@ -123,10 +123,11 @@ def main() -> int:
     if args.demo:
         out = args.work / "demo"
         t0 = time.perf_counter()
-        code = cli(["demo", "--out", str(out)])
+        code = 0 if args.traits_only else cli(["demo", "--out", str(out)])
         row = run_capture("demo", out / "capture" / "video.mp4", out / "capture" / "ground_truth.json",
-                          out / "workspace", "read")
-        row.update(exit_code=code, wall_seconds=round(time.perf_counter() - t0, 1))
+                          out / "workspace", "traits" if args.traits_only else "read")
+        if not args.traits_only:
+            row.update(exit_code=code, wall_seconds=round(time.perf_counter() - t0, 1))
         rows.append(row)
         print(json.dumps({k: row.get(k) for k in ("capture", "exit_code", "quality", "traits")}), flush=True)
     v = verdict(rows)

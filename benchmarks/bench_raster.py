@@ -301,7 +301,8 @@ def main() -> int:
     from plantsplat.io import write_json_atomic
 
     info = machine_info()
-    results: dict = {"machine": info, "arithmetic_limit_pairs_per_s": arithmetic_limit(info), "cases": {}}
+    results: dict = {"benchmark": "raster", "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "machine": info,
+                     "arithmetic_limit_pairs_per_s": arithmetic_limit(info), "cases": {}}
     cases = [c for c in args.cases.split(",") if c]
     child_env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
     results["machine"]["omp"] = plantsplat.omp_setting()

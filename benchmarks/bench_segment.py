@@ -30,6 +30,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_image, read_json, write_json_atomic
 from plantsplat.segment import mask_iou, segment_workspace
 from plantsplat.segment.config import SegmentConfig
@@ -136,7 +137,10 @@ def romi_virtual(ws: Workspace) -> dict | None:
     for p in sorted((src / "images").glob("*_rgb.png")):
         truth[p.name] = read_image(src / "images" / p.name.replace("_rgb", "_background"), "gray") < 128
     estimate_poses(ws, PosesConfig(import_colmap=src / "colmap_text" / "sparse" / "0"))
-    segment_workspace(ws, SegmentConfig())
+    try:
+        segment_workspace(ws, SegmentConfig())
+    except PlantsplatError as exc:  # recorded as the result: the benchmark goes on
+        return {"error": str(exc)}
     return score(ws, truth)
 
 

@@ -220,13 +220,28 @@ def test_uncalibrated_without_cube_gives_no_numbers():
     assert "no cube" in res.reasons[0]
 
 
-def test_plant_in_many_pieces_is_flagged():
+def test_plant_in_many_pieces_is_flagged_with_a_merge_distance():
     rng = np.random.default_rng(6)
     cube = cube_surface_points(10.0, 5000, rng, faces=CUBE_FACES)
     blobs = [rng.normal([25 + 12 * (i % 4), 12 * (i // 4), 15], 0.8, (600, 3)) for i in range(16)]
-    res = measure_traits(np.concatenate([cube, *blobs]), None, calibrated=True)
+    res = measure_traits(np.concatenate([cube, *blobs]), None, calibrated=True,
+                         settings=TraitsConfig(merge_distance_cm=4.0))
     assert res.quality == "warning"
     assert any("fragmented" in r or "left out" in r for r in res.reasons), res.reasons
+
+
+def test_leaves_apart_from_the_crown_are_plant_and_floaters_are_not():
+    """By default every cluster but the cube, floaters and what lies under the ground is plant: leaves on
+    petioles too thin to reconstruct stand 12 cm apart and all count."""
+    rng = np.random.default_rng(6)
+    cube = cube_surface_points(10.0, 5000, rng, faces=CUBE_FACES)
+    blobs = [rng.normal([25 + 12 * (i % 4), 12 * (i // 4), 15], 0.8, (600, 3)) for i in range(16)]
+    floater = rng.normal([60, 60, 30], 0.3, (8, 3))  # too few points for a cluster of its own
+    res = measure_traits(np.concatenate([cube, *blobs, floater]), None, calibrated=True)
+    assert len(res.plant_points) >= 0.99 * 16 * 600  # all 16 (less DBSCAN's few outliers)
+    assert res.plant_points[:, 1].max() < 45  # not the floater
+    assert 51 < res.traits["width1_cm"] < 56  # the 4 x 4 grid's diagonal (36 x 36 cm) plus the blobs
+    assert not any("fragmented" in r for r in res.reasons)
 
 
 def test_no_cube_in_calibrated_cloud_is_flagged_not_fatal():
@@ -396,6 +411,9 @@ def test_large_clouds_clustered_on_a_subset_give_the_same_plant():
     assert res.traits["height_cm"] == pytest.approx(traitdefs.plant_height(pts[plant]), rel=1e-9)
 
 
+LINKED = TraitsConfig(merge_distance_cm=4.0)  # clouds made without 3D masks: clusters join by their gaps
+
+
 def test_hanging_fruit_without_peduncles_join_the_plant():
     """Fruit whose peduncles were not reconstructed hang as separate red clusters: they join the plant when
     they are within reach and below its top; red things far away or above the plant, and green clusters at
@@ -421,7 +439,7 @@ def test_hanging_fruit_without_peduncles_join_the_plant():
     assert 4.0 < d_hang < 15.0  # beyond the usual merge distance, within fruit reach
     P = np.concatenate([pts, hang, far, high, green])
     C = np.concatenate([cols, hang_c, far_c, high_c, green_c])
-    res = measure_traits(P, C, calibrated=True)
+    res = measure_traits(P, C, calibrated=True, settings=LINKED)
     got = res.plant_points
     near = lambda b: np.isin(got.view([("", got.dtype)] * 3), b.view([("", b.dtype)] * 3)).any()  # noqa: E731
     assert near(hang) and not near(far) and not near(high) and not near(green)
@@ -429,7 +447,7 @@ def test_hanging_fruit_without_peduncles_join_the_plant():
     assert res.traits["height_cm"] > body[:, 2].max() - body[:, 2].min() + 2.0  # the hanging fruit counts for height
     assert any("fruit-coloured" in n for n in res.notes)
     # switched off: without their peduncles all fruit stay out (they hang more than 4 cm from the leaves)
-    off = measure_traits(P, C, calibrated=True, settings=TraitsConfig(fruit_join_cm=0))
+    off = measure_traits(P, C, calibrated=True, settings=TraitsConfig(merge_distance_cm=4.0, fruit_join_cm=0))
     assert off.traits["fruit_count"] == 0
 
 
@@ -458,16 +476,17 @@ def test_hanging_unripe_fruit_join_the_plant_but_pale_objects_do_not():
                               np.tile(np.array([190, 100, 40], np.uint8), (200, 1))])
     P = np.concatenate([pts, unripe, box, truss])
     C = np.concatenate([cols, cream(len(unripe)), cream(len(box)), truss_c])
-    res = measure_traits(P, C, calibrated=True)
+    res = measure_traits(P, C, calibrated=True, settings=LINKED)
     got = {tuple(p) for p in res.plant_points.round(6)}
     assert all(tuple(p) in got for p in unripe.round(6)), "unripe"
     assert all(tuple(p) in got for p in truss.round(6)), "truss"
     assert not any(tuple(p) in got for p in box.round(6))
     assert [r for r in res.reasons if "too far" in r] == [f"1 large cluster(s) left out as too far from the plant "
                                                           f"({len(box)} points): check the plant is not split"]
-    alone = measure_traits(np.concatenate([pts, unripe]), np.concatenate([cols, cream(len(unripe))]), calibrated=True)
+    alone = measure_traits(np.concatenate([pts, unripe]), np.concatenate([cols, cream(len(unripe))]), calibrated=True,
+                           settings=LINKED)
     assert alone.quality == "ok", alone.reasons  # every far cluster joined: nothing to warn about
-    off = measure_traits(P, C, calibrated=True, settings=TraitsConfig(fruit_join_unripe_cm=0))
+    off = measure_traits(P, C, calibrated=True, settings=TraitsConfig(merge_distance_cm=4.0, fruit_join_unripe_cm=0))
     got_off = {tuple(p) for p in off.plant_points.round(6)}
     assert not any(tuple(p) in got_off for p in unripe.round(6))
 

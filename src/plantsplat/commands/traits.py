@@ -49,7 +49,7 @@ def run(cfg: TraitsCommand) -> int:
         raise UsageError(f"--trim {s.trim}: must be in [0, 0.5)")
     if s.eps is not None and s.eps <= 0:
         raise UsageError(f"--eps {s.eps}: must be positive")
-    if s.min_points < 1 or s.merge_distance_cm < 0 or s.cube_size_cm <= 0:
+    if s.min_points < 1 or (s.merge_distance_cm is not None and s.merge_distance_cm < 0) or s.cube_size_cm <= 0:
         raise UsageError("--min-points must be >= 1, --merge-distance-cm >= 0 and --cube-size-cm > 0")
     traits_stage(ws, s, cfg.force, points=cfg.points, calibrated=cfg.calibrated, figure=cfg.figure)
     out = read_json(ws.traits_json)

@@ -109,7 +109,8 @@ def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool 
         mask = refine(rgb, prior, cfg.refine_band_px) if cfg.refine_band_px > 0 else prior > 0.5
         parts[name] = (mask & ~(cube > 0.5), mask & (cube > 0.5))
         facts[name] = {"confidence": round(mask_iou(prior > 0.5, mask), 4)}
-    info = {"object": obj.info, "calibrated": obj.cube is not None, "timing": {"scene_model_s": round(t_model, 2)}}
+    info = {"object": obj.info, "calibrated": obj.cube is not None, "sfm_points": int(len(points)),
+            "timing": {"scene_model_s": round(t_model, 2)}}
     return parts, facts, info
 
 
@@ -177,7 +178,10 @@ def _write_outputs(ws: Workspace, names: list[str], masks: dict[str, np.ndarray]
     if len(excluded) > cfg.max_excluded * len(names):
         raise PlantsplatError(
             f"{ws.images_dir}: no plant in {len(excluded)} of {len(names)} frames (e.g. {excluded[0]['name']}: "
-            f"{excluded[0]['reason']}); check the capture and the poses; nothing was written")
+            f"{excluded[0]['reason']}); " + ("the camera model has no 3D points (an imported model without points3D?), "
+                                            "so the quick 3D model started from random ones: run the poses stage's "
+                                            "SfM, or pass --import-masks DIR" if info.get("sfm_points") == 0 else
+                                            "check the capture and the poses") + "; nothing was written")
     with staged_dir(ws.masks_dir) as masks_dir, staged_dir(ws.rgba_dir) as rgba_dir:
         for n in progress(names, "segment: writing masks and RGBA"):
             m8 = masks[n].astype(np.uint8) * 255 if n in masks else np.zeros(shape, np.uint8)

@@ -150,20 +150,47 @@ class PlantSelection:
     caller has joined what belongs to the plant, such as hanging fruit)."""
 
 
+def _linked_groups(pts, labels, pieces: list[int], sizes: dict[int, int], merge_distance: float | None):
+    """``root(label)``: the group of each piece, pieces linked by gaps of at most ``merge_distance`` (single
+    linkage); one group for all without a distance."""
+    from scipy.spatial import cKDTree
+
+    group = {i: pieces[0] if merge_distance is None else i for i in pieces}
+
+    def root(i):
+        while group[i] != i:
+            group[i] = group[group[i]]
+            i = group[i]
+        return i
+
+    if merge_distance is None:
+        return root
+    trees = {i: cKDTree(pts[labels == i]) for i in pieces}
+    for a_idx, a in enumerate(pieces):
+        for b in pieces[a_idx + 1:]:
+            if root(a) == root(b):
+                continue
+            small, big = (a, b) if sizes[a] <= sizes[b] else (b, a)
+            d, _ = trees[big].query(trees[small].data, k=1, distance_upper_bound=merge_distance)
+            if np.isfinite(d).any():
+                group[root(a)] = root(b)
+    return root
+
+
 def select_plant(
     points: np.ndarray,
     labels: np.ndarray,
     *,
     exclude: set[int] = frozenset(),
-    merge_distance: float,
+    merge_distance: float | None,
     min_cluster_fraction: float = 0.002,
     min_cluster_points: int = 10,
     max_pieces: int = 12,
 ) -> PlantSelection | None:
-    """The plant: the largest cluster that is not excluded (the cube), plus every cluster whose
-    nearest point lies within ``merge_distance`` of the plant so far (repeated until nothing joins:
-    separated leaves, fruit on thin peduncles). Tiny clusters (fewer than ``min_cluster_fraction`` of
-    the main cluster's points) are floaters and never join. Returns None when no cluster is left.
+    """The plant: every cluster that is not excluded (the cube) nor a floater (fewer points than
+    ``min_cluster_fraction`` of the largest cluster's). With a ``merge_distance``, only the group of
+    clusters linked by gaps of at most that distance (separated leaves, fruit on thin peduncles) that
+    holds the most points. Returns None when no cluster is left.
 
     Example:
         >>> rng = np.random.default_rng(1)
@@ -175,8 +202,6 @@ def select_plant(
         >>> sel.clusters, int(sel.mask.sum())
         ([0, 1], 2200)
     """
-    from scipy.spatial import cKDTree
-
     pts = np.asarray(points, dtype=np.float64)
     labels = np.asarray(labels)
     ids = [int(i) for i in np.unique(labels) if i >= 0 and int(i) not in exclude]
@@ -192,25 +217,10 @@ def select_plant(
             excluded.append({"label": i, "points": sizes[i], "reason": "floater (too small)"})
         else:
             pieces.append(i)
-    # group the pieces by single linkage (a gap of at most merge_distance joins two pieces); the plant
-    # is the group with the most points: a fragmented plant outweighs one large piece of something else
-    trees = {i: cKDTree(pts[labels == i]) for i in pieces}
-    group = {i: i for i in pieces}
-
-    def root(i):
-        while group[i] != i:
-            group[i] = group[group[i]]
-            i = group[i]
-        return i
-
-    for a_idx, a in enumerate(pieces):
-        for b in pieces[a_idx + 1:]:
-            if root(a) == root(b):
-                continue
-            small, big = (a, b) if sizes[a] <= sizes[b] else (b, a)
-            d, _ = trees[big].query(trees[small].data, k=1, distance_upper_bound=merge_distance)
-            if np.isfinite(d).any():
-                group[root(a)] = root(b)
+    if not pieces:
+        return None
+    # the plant is the group with the most points: a fragmented plant outweighs one large piece of something else
+    root = _linked_groups(pts, labels, pieces, sizes, merge_distance)
     totals: dict[int, int] = {}
     for i in pieces:
         totals[root(i)] = totals.get(root(i), 0) + sizes[i]
@@ -224,9 +234,11 @@ def select_plant(
     total = int(mask.sum())
     main_fraction = sizes[main] / total
     reasons: list[str] = []
-    if len(chosen) > max_pieces:
-        reasons.append(f"plant assembled from {len(chosen)} clusters (more than {max_pieces}): reconstruction is fragmented")
-    if main_fraction < 0.25:
-        reasons.append(f"largest plant cluster holds only {main_fraction:.0%} of the plant's points: "
-                       "reconstruction is fragmented")
+    if merge_distance is not None:  # (without one every piece is plant by design: their number says nothing)
+        if len(chosen) > max_pieces:
+            reasons.append(f"plant assembled from {len(chosen)} clusters (more than {max_pieces}): "
+                           "reconstruction is fragmented")
+        if main_fraction < 0.25:
+            reasons.append(f"largest plant cluster holds only {main_fraction:.0%} of the plant's points: "
+                           "reconstruction is fragmented")
     return PlantSelection(mask=mask, clusters=chosen, main_fraction=float(main_fraction), excluded=excluded, reasons=reasons)

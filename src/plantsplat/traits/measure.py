@@ -81,8 +81,11 @@ class TraitsConfig:
     """DBSCAN minimum neighbourhood size."""
     max_cluster_points: int = 250_000
     """Cluster at most this many points (a random subset; the rest take their neighbour's label)."""
-    merge_distance_cm: float = 4.0
-    """Clusters closer than this to the plant join it (separated leaves, fruit on thin stems)."""
+    merge_distance_cm: float | None = None
+    """None: every cluster that is not the cube, below the ground or a floater is plant (the masks decided the
+    object in 3D, so what the model holds is plant; leaves on petioles too thin to reconstruct are apart from
+    the crown). A distance (cm): only the clusters linked to the plant by gaps up to it (for clouds made
+    without such masks)."""
     min_cluster_fraction: float = 0.002
     """Clusters smaller than this fraction of the main plant cluster are floaters."""
     fruit_join_cm: float = 15.0
@@ -456,6 +459,19 @@ def _join_fruit(pts_cm, cols, labels, sel, s: TraitsConfig, notes: list[str]) ->
     return joined
 
 
+def _soil_under(P: np.ndarray, soil_z: float | None, disc: tuple | None, notes: list[str]) -> float | None:
+    """``soil_z``, lowered to the plant's lowest point over the pot's inside when it is only an upper bound."""
+    if soil_z is None or disc is None:
+        return soil_z
+    inside = np.linalg.norm(P[:, :2] - np.asarray(disc[0]), axis=1) < disc[1]
+    if not inside.any() or P[inside, 2].min() >= soil_z:
+        return soil_z
+    low = float(P[inside, 2].min())
+    notes.append(f"the soil was not seen; the plant's lowest point inside the pot ({low:.1f} cm) is taken for it "
+                 f"instead of the rim ({soil_z:.1f} cm)")
+    return low
+
+
 def _plant_traits(P, P_centres, C_centres, soil, s: TraitsConfig, notes: list[str]):
     traits: dict = traitdefs.geometric_traits(P, soil_z=soil)
     rob = traitdefs.geometric_traits(P, trim=s.trim, soil_z=soil)
@@ -481,6 +497,7 @@ def measure_traits(
     cube: CubeSpec | None = None,
     centre_mask: np.ndarray | None = None,
     soil_z: float | None = None,
+    soil_disc: tuple | None = None,
 ) -> TraitResult:
     """Measure plant traits from a point cloud of a plant and the calibration cube.
 
@@ -502,6 +519,8 @@ def measure_traits(
             (:func:`gaussian_extent_points`); fruit are counted on centres only. None: all points.
         soil_z: the soil surface's height in a calibrated cloud (cm): the height is measured from it (else
             the plant's z extent).
+        soil_disc: ``(centre xy, radius)`` of the pot's inside when ``soil_z`` is only an upper bound (the
+            rim): the soil is then taken no higher than the plant's lowest point over that disc.
 
     Returns:
         A :class:`TraitResult`; ``quality`` is 'failed' (and every trait None) when the traits cannot
@@ -592,7 +611,7 @@ def measure_traits(
     if P[:, 2].min() < -1.0:
         reasons.append(f"plant points reach {P[:, 2].min():.1f} cm below the ground plane: check the vertical")
 
-    soil = soil_z if calibrated else None
+    soil = _soil_under(P, soil_z, soil_disc, notes) if calibrated else None
     traits, robust, fruit_centres = _plant_traits(P, pts_cm[plant_mask & is_centre],
                                                   None if C is None else cols[plant_mask & is_centre], soil, s, notes)
     timings["plant_and_traits"] = time.perf_counter() - t2
@@ -734,15 +753,16 @@ def traits_workspace(ws, cfg=None, *, points_path: str | Path | None = None, cal
         data = read_point_cloud(ply, "run `plantsplat export` first or pass --points")
     log.info("traits: %s (%d points, %s)", ply, len(data["xyz"]), "calibrated cm" if calibrated else "unscaled")
     cams = _camera_centres(ws)
-    soil_z, soil_source = soil_level(ws, calibrated)
+    soil_z, soil_source, soil_disc = soil_level(ws, calibrated)
     res = measure_traits(data["xyz"], data["rgb"], calibrated=calibrated, opacity=data["opacity"],
                          scales=data["scales"], camera_centres=None if calibrated else cams, settings=s,
-                         centre_mask=data.get("centre"), soil_z=soil_z)
+                         centre_mask=data.get("centre"), soil_z=soil_z, soil_disc=soil_disc)
     out = res.to_json()
     out["input"] = str(ply)
     out["soil_source"] = soil_source
     out["scale"]["calibrated_input"] = bool(calibrated)
-    _judge(out, res, ws, cams if calibrated else None)
+    rim_only = soil_disc is not None and res.soil_z == soil_z  # the soil unseen, and nothing of the plant below the rim
+    _judge(out, res, ws, cams if calibrated else None, None if soil_z is None else not rim_only)
     write_json_atomic(ws.traits_json, out)
     write_text_atomic(ws.traits_csv, traits_csv_text(out, ws.root.name))
     if figure and res.plant_points is not None:
@@ -758,7 +778,7 @@ def traits_workspace(ws, cfg=None, *, points_path: str | Path | None = None, cal
     return out
 
 
-def _judge(out: dict, res: TraitResult, ws, cams: np.ndarray | None) -> None:
+def _judge(out: dict, res: TraitResult, ws, cams: np.ndarray | None, soil_located: bool | None) -> None:
     """Every stage's checks and the measurement's own (:mod:`plantsplat.traits.checks`) into ``out``'s ``checks``,
     ``quality`` and ``quality_reasons``."""
     from plantsplat.checks import quality
@@ -768,7 +788,7 @@ def _judge(out: dict, res: TraitResult, ws, cams: np.ndarray | None) -> None:
     if res.plant_points is not None:
         top = float(res.plant_points[:, 2].max())
         checks += result_checks(res.traits, len(res.plant_points), top if cams is not None else None,
-                                None if cams is None else float(cams[:, 2].max()))
+                                None if cams is None else float(cams[:, 2].max()), soil_located=soil_located)
     out["checks"] = [c.as_dict() for c in checks]
     verdict = quality(checks)
     order = ["ok", "warning", "failed"]
