@@ -505,13 +505,14 @@ def test_height_is_measured_from_the_soil():
     assert alone.traits["height_cm"] == pytest.approx(alone.traits["height_extent_cm"])
 
 
-def _measured_workspace(tmp_path, pts, cols, segment_confidence: list[float] | None = None, pot_soil: float | None = None):
+def _measured_workspace(tmp_path, pts, cols, segment_confidence: list[float] | None = None, pot_soil: float | None = None,
+                        pot: dict | None = None):
     ws = tmp_path / "plant"
     _write_points_ply(ws / "export" / "points.ply", pts, cols, np.ones(len(pts)))
     (ws / "poses.json").write_text(json.dumps({"scale_source": "aruco"}))
     if segment_confidence is not None:
         frames = [{"name": f"frame_{i:05d}.png", "confidence": c} for i, c in enumerate(segment_confidence)]
-        obj = {"pot": {"soil_z_cm": pot_soil}} if pot_soil is not None else {}
+        obj = {"pot": pot or {"soil_z_cm": pot_soil}} if pot_soil is not None or pot else {}
         (ws / "segment.json").write_text(json.dumps({"frames": frames, "capture": {"object": obj}}))
     return ws
 
@@ -533,6 +534,27 @@ def test_a_result_failing_its_checks_is_written_marked_and_exits_4(tmp_path, cap
     assert any(r.startswith("check masks_unsure_share") for r in out["quality_reasons"])
     assert "failed" in (ws / "traits.csv").read_text()
     assert "FAILED" in capsys.readouterr().err
+
+
+def test_a_height_from_the_rim_alone_fails_and_the_plant_bounds_an_unseen_soil(tmp_path):
+    """The soil was not seen (the pot's rim stands for it): with nothing of the plant below the rim the height
+    is short by the soil's depth and the result fails; a plant reaching below the rim inside the pot bounds it."""
+    from plantsplat.traits.measure import traits_workspace
+
+    pts, cols, plant = make_plant_scene(seed=4, floaters=False)
+    crown = pts[plant][np.argmin(pts[plant][:, 2])]
+    low = float(pts[plant][:, 2].min())
+    rim = {"centre_cm": crown[:2].tolist(), "rim_radius_cm": 8.0}
+    above = _measured_workspace(tmp_path / "a", pts, cols, [0.9] * 20, pot={**rim, "rim_z_cm": low - 1.0,
+                                                                             "soil_z_cm": low - 1.0})
+    out = traits_workspace(above, figure=False)
+    failed = {c["name"] for c in out["checks"] if not c["passed"]}
+    assert out["quality"] == "failed" and failed == {"soil_located"}
+    below = _measured_workspace(tmp_path / "b", pts, cols, [0.9] * 20, pot={**rim, "rim_z_cm": low + 1.0,
+                                                                             "soil_z_cm": low + 1.0})
+    out = traits_workspace(below, figure=False)
+    assert out["quality"] != "failed" and out["soil_z_cm"] == pytest.approx(low)
+    assert any("lowest point inside the pot" in n for n in out["notes"])
 
 
 def test_a_tiny_cloud_fails_its_checks(tmp_path):

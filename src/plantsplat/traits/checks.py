@@ -79,13 +79,17 @@ def soil_level(ws, calibrated: bool) -> tuple[float | None, str, tuple | None]:
             disc = (np.asarray(pot["centre_cm"], float), 0.8 * float(pot["rim_radius_cm"])) if rim_only else None
             return float(pot["soil_z_cm"]), "the pot the segment stage found in 3D" + (
                 " (soil not seen: at most the rim)" if rim_only else ""), disc
-    found = _pot_from_sfm(ws)
-    if found is not None:
-        return found, "the pot found among the SfM points", None
+    pot = _pot_from_sfm(ws)
+    if pot is not None:
+        rim_only = pot.soil_z >= pot.rim_z
+        disc = (np.asarray(pot.centre, float), 0.8 * float(pot.radii[-1])) if rim_only else None
+        return float(pot.soil_z), "the pot found among the SfM points" + (
+            " (soil not seen: at most the rim)" if rim_only else ""), disc
     return None, "no pot found: the height is the plant's extent (a plant in the ground)", None
 
 
-def _pot_from_sfm(ws) -> float | None:
+def _pot_from_sfm(ws):
+    """The pot (:class:`plantsplat.segment.object3d.Pot`) found among the poses stage's SfM points, or None."""
     from plantsplat.segment.object3d import find_pot, orbit_axis
     from plantsplat.train.data import load_scene
 
@@ -96,8 +100,7 @@ def _pot_from_sfm(ws) -> float | None:
     if len(scene.points) < 50:
         return None
     axis = orbit_axis([np.linalg.inv(v.viewmat) for v in scene.views])
-    pot = find_pot(scene.points, axis[:2])
-    return None if pot is None else pot.soil_z
+    return find_pot(scene.points, axis[:2])
 
 
 def stage_checks(ws, t: QualityThresholds = QualityThresholds()) -> list[Check]:
