@@ -53,6 +53,25 @@ def synth_capture(tmp_path_factory):
     return make
 
 
+@pytest.fixture
+def interrupted_after():
+    """``interrupted_after(real, n)``: a stand-in for a ``write(path, data)`` function that raises
+    KeyboardInterrupt (a Ctrl-C mid-stage) on its ``n``-th call and otherwise calls ``real``."""
+
+    def make(real, n: int):
+        calls = []
+
+        def write(path, data):
+            calls.append(path)
+            if len(calls) == n:
+                raise KeyboardInterrupt
+            real(path, data)
+
+        return write
+
+    return make
+
+
 @pytest.fixture(scope="session")
 def datasets_dir() -> Path:
     """The shared datasets folder, or skip when it is not there."""

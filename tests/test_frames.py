@@ -150,21 +150,14 @@ def test_input_inside_the_output_is_refused(tmp_path):
     assert len(ws.image_names()) == 12
 
 
-def test_interrupted_extraction_leaves_nothing_half_written(tmp_path, monkeypatch):
+def test_interrupted_extraction_leaves_nothing_half_written(tmp_path, monkeypatch, interrupted_after):
     """Ctrl-C while writing images leaves images/ as it was; the same command then finishes (issue 34, case 4)."""
     import plantsplat.frames as frames_mod
 
     video = _write_video(tmp_path / "v.mp4", [_pattern(i, 64, 64) for i in range(20)])
     ws = Workspace(tmp_path / "ws")
-    real, calls = frames_mod.write_image_atomic, []
-
-    def interrupted(path, img):
-        calls.append(path)
-        if len(calls) == 4:
-            raise KeyboardInterrupt
-        real(path, img)
-
-    monkeypatch.setattr(frames_mod, "write_image_atomic", interrupted)
+    real = frames_mod.write_image_atomic
+    monkeypatch.setattr(frames_mod, "write_image_atomic", interrupted_after(real, 4))
     with pytest.raises(KeyboardInterrupt):
         frames_stage(ws, video, FramesConfig(num=10))
     assert ws.image_names() == [] and not ws.frames_json.exists()

@@ -229,7 +229,7 @@ def test_bad_workspaces(tmp_path, capsys):
     assert "none: no such folder" in err and "Traceback" not in err
 
 
-def test_interrupted_segment_leaves_no_mix_and_runs_again(tmp_path, monkeypatch):
+def test_interrupted_segment_leaves_no_mix_and_runs_again(tmp_path, monkeypatch, interrupted_after):
     """`segment --force` interrupted half way keeps the previous masks whole, and the next run is not
     "up to date" (issue 34, case 5)."""
     import plantsplat.segment as seg
@@ -245,15 +245,8 @@ def test_interrupted_segment_leaves_no_mix_and_runs_again(tmp_path, monkeypatch)
     before = {n: read_image(ws.masks_dir / n, "gray") for n in ws.image_names()}
     for i in range(4):  # the user's masks change; the stage is forced and interrupted after two files
         cv2.imwrite(str(src / f"frame_{i:05d}.png"), np.full((48, 64), 255, np.uint8))
-    real, calls = seg._write_png, []
-
-    def interrupted(path, img):
-        calls.append(path)
-        if len(calls) == 3:
-            raise KeyboardInterrupt
-        real(path, img)
-
-    monkeypatch.setattr(seg, "_write_png", interrupted)
+    real = seg._write_png
+    monkeypatch.setattr(seg, "_write_png", interrupted_after(real, 3))
     with pytest.raises(KeyboardInterrupt):
         segment_stage(ws, SegmentConfig(import_masks=src, preview=False), force=True)
     for n, m in before.items():

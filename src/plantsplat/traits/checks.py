@@ -75,17 +75,21 @@ def soil_level(ws, calibrated: bool) -> tuple[float | None, str, tuple | None]:
     if ws.segment_json.is_file():
         pot = (((read_json(ws.segment_json).get("capture") or {}).get("object") or {}).get("pot")) or {}
         if pot.get("soil_z_cm") is not None:
-            rim_only = pot["soil_z_cm"] >= pot.get("rim_z_cm", np.inf)
-            disc = (np.asarray(pot["centre_cm"], float), 0.8 * float(pot["rim_radius_cm"])) if rim_only else None
-            return float(pot["soil_z_cm"]), "the pot the segment stage found in 3D" + (
-                " (soil not seen: at most the rim)" if rim_only else ""), disc
+            return _soil_of(pot["soil_z_cm"], pot.get("rim_z_cm", np.inf), pot.get("centre_cm"),
+                            pot.get("rim_radius_cm"), "the pot the segment stage found in 3D")
     pot = _pot_from_sfm(ws)
     if pot is not None:
-        rim_only = pot.soil_z >= pot.rim_z
-        disc = (np.asarray(pot.centre, float), 0.8 * float(pot.radii[-1])) if rim_only else None
-        return float(pot.soil_z), "the pot found among the SfM points" + (
-            " (soil not seen: at most the rim)" if rim_only else ""), disc
+        return _soil_of(pot.soil_z, pot.rim_z, pot.centre, pot.radii[-1], "the pot found among the SfM points")
     return None, "no pot found: the height is the plant's extent (a plant in the ground)", None
+
+
+def _soil_of(soil_z: float, rim_z: float, centre, rim_radius, source: str) -> tuple[float, str, tuple | None]:
+    """:func:`soil_level`'s answer for a pot: the soil, its source, and the pot's inner disc when the rim stood
+    for an unseen soil."""
+    if soil_z < rim_z:
+        return float(soil_z), source, None
+    disc = (np.asarray(centre, float), 0.8 * float(rim_radius))
+    return float(soil_z), source + " (soil not seen: at most the rim)", disc
 
 
 def _pot_from_sfm(ws):
