@@ -9,13 +9,15 @@ within 30 cm of the plant's axis triangulated again with the true cameras and fi
 model's points: what the plant and the cube inherit); plus the stage's time and checks.
 
 - foreign: the independent renders in ``../shared/datasets/foreign_renders/`` (skipped when absent);
-- synth: ``plantsplat synth`` captures of the given seeds (rendered once into ``--cache``);
+- synth: ``plantsplat synth --hard`` captures of the given seeds, 180 frames like the foreign renders (blank
+  walls, the cube seen in part of the frames, strong shake; rendered once into ``--cache``);
 - ROMI: the real plant's 60 photos at 720x540 against the scanner's poses (no cube: no scale; mm).
 
 Results go to ``benchmarks/results/poses.json`` with machine information and the date.
 
 Usage:
-    .venv/bin/python benchmarks/bench_poses.py [--seeds 71 72 73 74 75] [--foreign 101 102 103] [--no-romi]
+    .venv/bin/python benchmarks/bench_poses.py [--seeds 211 212 213 214 216] [--foreign 101 102 103 104 108 110]
+        [--no-romi]
 """
 
 from __future__ import annotations
@@ -33,8 +35,12 @@ ROOT = Path(__file__).resolve().parents[1]
 DATASETS = Path(os.environ.get("PLANTSPLAT_DATASETS", ROOT.parent / "shared" / "datasets"))
 RESULTS = ROOT / "benchmarks" / "results" / "poses.json"
 
-TARGETS = {"registered_min": 118, "rotation_error_deg_median": 0.3, "rotation_error_deg_max": 1.0,
-           "centre_error_cm_median": 0.5, "scale_error_pct_abs": 0.5, "seconds": 150.0}
+TARGETS = {"registered_min": 116, "rotation_error_deg_median": 0.3, "rotation_error_deg_max": 1.0,
+           "centre_error_cm_median": 0.5, "scale_error_pct_abs": 0.5, "seconds": 162.0}
+
+
+SEEDS = [211, 212, 213, 214, 216]
+"""Hard synthetic captures not used to develop the stage, whose cube is seen in under half the frames (215: 71 %)."""
 
 
 def run_capture(label: str, video: Path, ground_truth: dict, work: Path) -> dict:
@@ -134,8 +140,8 @@ def main() -> None:
     from plantsplat.resources import machine_info
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", type=int, nargs="*", default=[71, 72, 73, 74, 75])
-    ap.add_argument("--foreign", nargs="*", default=["101", "102", "103"])
+    ap.add_argument("--seeds", type=int, nargs="*", default=SEEDS)
+    ap.add_argument("--foreign", nargs="*", default=["101", "102", "103", "104", "108", "110"])
     ap.add_argument("--no-romi", action="store_true")
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "plantsplat_bench_poses")
     ap.add_argument("--out", type=Path, default=RESULTS)
@@ -157,9 +163,9 @@ def main() -> None:
         for seed in args.seeds:
             from plantsplat.synth import SynthConfig, generate
 
-            cap = args.cache / f"s{seed}"
+            cap = args.cache / f"hard{seed}"
             if not (cap / "ground_truth.json").is_file():
-                generate(SynthConfig(out=cap, seed=seed, force=True))
+                generate(SynthConfig(out=cap, seed=seed, frames=180, hard=True, force=True))
             rows.append(run_capture(f"synth_{seed}", cap / "video.mp4",
                                     json.loads((cap / "ground_truth.json").read_text()), work))
             print(json.dumps({k: v for k, v in rows[-1].items() if k not in ("events", "step_seconds")}), flush=True)

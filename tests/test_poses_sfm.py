@@ -155,3 +155,38 @@ def test_foreign_capture_registers_without_masks_or_cube(datasets_dir, tmp_path)
     assert err["rotation_error_deg"]["median"] < 0.5 and err["centre_error"]["median"] < 1.0, err
     assert report["scale_source"] == "aruco" and err["scale_error_pct"] < 2.0, err
     assert {c["name"] for c in report["checks"]} >= {"registered_share", "cube_reprojection_px", "cube_scale_halves"}
+
+
+def test_model_agrees_with_its_pairs_and_a_moved_camera_does_not(synth_run):
+    """The model's matched pairs fit its epipolar geometry; tilting one camera by 3 degrees makes the model
+    contradict that frame's pairs (what the poses stage uses to choose between mappers)."""
+    import pycolmap
+
+    from plantsplat.poses.consistency import contradicted, contradiction, pair_errors
+
+    cap, ws, report = synth_run
+    db = ws.root / ".plantsplat" / "colmap" / "database.db"
+    rec = read_colmap(ws.sparse_dir)
+    errors = pair_errors(rec, db)
+    assert len(errors) > 100
+    assert np.median([e for _, e in errors.values()]) < 1.0
+    assert contradiction(errors, 4.0) < 0.05
+    im = next(i for i in rec.images.values() if i.has_pose)
+    moved = {p for p, (n, e) in errors.items() if im.name in p and e <= 4.0}
+    turn = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([np.radians(3.0), 0.0, 0.0])), np.zeros(3))  # a tilt: across the
+    # epipolar lines of an orbit (a pan moves points along them between neighbours on a ring)
+    im.frame.rig_from_world = turn * im.frame.rig_from_world
+    bad = set(contradicted(pair_errors(rec, db), 4.0))
+    assert moved and moved <= bad
+
+
+def test_scale_uncertainty_from_the_frames_that_see_the_cube(synth_run):
+    from plantsplat.markers import read_markers
+    from plantsplat.poses.calibrate import scale_uncertainty
+
+    cap, ws, report = synth_run
+    unc = report["scale_uncertainty"]
+    assert unc["groups"] >= 2 and 0.0 < unc["relative_se"] < 0.02, unc
+    det = read_markers(ws.markers_json).frames
+    one = dict([next(iter(det.items()))])
+    assert scale_uncertainty(read_colmap(ws.sparse_dir), one, sorted(one))["relative_se"] is None

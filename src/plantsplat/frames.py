@@ -37,6 +37,13 @@ VIDEO_SUFFIXES = {".mp4", ".mov", ".m4v", ".mkv", ".avi", ".webm", ".mts", ".3gp
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
 FRAMES_VERSION = 1
 
+ADVISED_FRAMES = 100
+"""Fewer frames than this (three rings of about 40, 6-12 degrees apart) register poorly: a 90-frame capture at
+270x480 did not register at all (2026-11-26)."""
+ADVISED_SHORT_SIDE = 480
+"""Frames narrower than this (px, short side) give too few SIFT features on blank rooms (540x960 is what the
+benchmarks use; 270x480 did not register)."""
+
 
 @dataclass
 class FramesConfig:
@@ -362,6 +369,25 @@ def _select_from_folder(folder: Path, num: int, max_size: int) -> tuple[list, di
 # --------------------------------------------------------------------------------------------------
 # public API
 # --------------------------------------------------------------------------------------------------
+def shortfalls(n_frames: int, width: int, height: int) -> list[str]:
+    """What a capture of ``n_frames`` frames of ``width`` x ``height`` lacks against what registration needs.
+
+    Example:
+        >>> shortfalls(90, 270, 480)[1]
+        'frames of 270x480 px: the short side should be at least 480 px (film at 1080p or more)'
+        >>> shortfalls(120, 540, 960)
+        []
+    """
+    out = []
+    if n_frames < ADVISED_FRAMES:
+        out.append(f"{n_frames} frames: a capture needs at least {ADVISED_FRAMES} (three slow rings, 6-12 degrees "
+                   "between frames)")
+    if min(width, height) < ADVISED_SHORT_SIDE:
+        out.append(f"frames of {width}x{height} px: the short side should be at least {ADVISED_SHORT_SIDE} px "
+                   "(film at 1080p or more)")
+    return out
+
+
 def check_not_inside(src: Path, ws: Workspace) -> None:
     """Refuse an input that is, holds or lies inside ``images/``, the folder the stage replaces."""
     out_dir, src = ws.images_dir.resolve(), Path(src).resolve()
@@ -443,7 +469,10 @@ def extract_frames(input: str | os.PathLike, ws: Workspace | str | os.PathLike, 
         "dropped": dropped,
         "unreadable": info.get("unreadable", []),
         "frames": records,
+        "shortfalls": shortfalls(len(records), *info["working_size"]),
     }
+    for line in out["shortfalls"]:
+        log.warning("capture: %s; poses may fail (see the README, 'Film it')", line)
     write_json_atomic(ws.frames_json, out)
     log.info("frames: wrote %d images (%dx%d) to %s", len(records), *info["working_size"], ws.images_dir)
     return out

@@ -278,6 +278,34 @@ def calibrate(
     )
 
 
+def scale_uncertainty(rec, detections: dict[str, dict[int, np.ndarray]], order: list[str], cube: CubeSpec = CubeSpec(),
+                      max_residual_px: float = 3.0, groups: int = 8) -> dict:
+    """How well the cube fixes the model's scale: a delete-one-group jackknife over the frames that see it.
+
+    The frames with markers, in video ``order``, are cut into up to ``groups`` runs of consecutive frames
+    (each run sees the cube from one side); the scale is estimated again without each run, and the spread
+    of those estimates gives the standard error of the scale from all frames. Returns ``{"relative_se":
+    float | None, "groups": int, "frames": int}``; ``relative_se`` (a fraction of the scale) is None when
+    fewer than two runs of at least two frames see the cube: then nothing says how well the scale is known.
+    """
+    seen = [n for n in order if n in detections]
+    g = min(groups, len(seen) // 2)
+    out = {"relative_se": None, "groups": int(max(g, 0)), "frames": len(seen)}
+    if g < 2:
+        return out
+    runs = np.array_split(np.array(seen), g)
+    logs = []
+    for run in runs:
+        held = set(run.tolist())
+        cal = calibrate(rec, {n: d for n, d in detections.items() if n not in held}, cube, max_residual_px)
+        if cal is None:
+            return out
+        logs.append(np.log(cal.scale))
+    logs = np.array(logs)
+    out["relative_se"] = float(np.sqrt((g - 1) / g * np.sum((logs - logs.mean()) ** 2)))
+    return out
+
+
 def up_vector(cal: Calibration | None) -> np.ndarray | None:
     """The world's +z (gravity up) in the model's original frame, or None without calibration."""
     if cal is None:

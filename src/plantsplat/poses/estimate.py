@@ -52,8 +52,9 @@ class PosesConfig:
     matcher: Literal["auto", "retrieval", "exhaustive"] = "auto"
     """Pairs to match: retrieval (video neighbours + visually similar frames), exhaustive (every pair), auto
     (exhaustive up to --exhaustive-max-frames frames, else retrieval)."""
-    mapper: Literal["incremental", "global"] = "incremental"
-    """COLMAP mapper: incremental (frames missing at first are matched again and mapping continues) or global."""
+    mapper: Literal["auto", "incremental", "global"] = "auto"
+    """COLMAP mapper: incremental (frames missing at first are matched again and mapping continues), global (global
+    mapping, then incremental mapping continued from it), or auto (both; the model its own matches contradict least)."""
     camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "RADIAL"
     """COLMAP camera model shared by all frames (phones: RADIAL)."""
     max_features: int = 2048
@@ -78,8 +79,15 @@ class PosesConfig:
     """Marker detections reprojecting worse than this (pixels) are left out of the calibration; the cube check uses it."""
     cube_bundle_adjustment: bool = True
     """After calibration, bundle-adjust with the cube's marker corners as fixed control points (SfM only)."""
-    min_registered: float = 0.8
+    min_registered: float = 0.7
     """Fail (exit code 3) when fewer than this share of the frames is registered and on the camera's path."""
+    warn_registered: float = 0.95
+    """Warn (the run goes on with the frames it could use) when fewer than this share is registered."""
+    min_cube_frames: float = 0.1
+    """Warn when the cube's markers are found in fewer than this share of the frames."""
+    max_camera_cube_px: float = 15.0
+    """A camera whose own marker detections the calibrated cube misses by more than this (px, RMS) is wrong: it is
+    left out."""
     max_path_deviation: float = 0.3
     """A camera off the path of its video neighbours by more than this share of the step to them (or of twice
     their turn) is left out."""
@@ -93,6 +101,12 @@ class PosesConfig:
     """Marker side, black border included (cm)."""
     dictionary: str = "DICT_4X4_50"
     """ArUco dictionary of the cube's markers."""
+    max_pair_error_px: float = 4.0
+    """A matched pair whose inliers lie farther than this (median Sampson distance, px) from the epipolar geometry the
+    model gives the two frames is contradicted by the model (--mapper auto keeps the model with the fewest)."""
+    mapper_keep_share: float = 0.95
+    """With --mapper auto, only models registering at least this share of the most frames any mapper registered
+    compete on consistency."""
     num_threads: int = 2
     """CPU threads for COLMAP."""
     seed: int = 0
@@ -182,14 +196,62 @@ def _extend(rec, db: Path, vocab: Path | None, names: list[str], ws: Workspace, 
     return rec
 
 
+def _map(db: Path, vocab: Path | None, names: list[str], ws: Workspace, cfg: PosesConfig, report: dict, mapper: str):
+    """One mapping of the matched pairs in ``db``: the mapper, pieces merged, missing frames matched again."""
+    from plantsplat.poses.sfm import global_then_incremental, incremental, merge_models
+
+    work = ws.root / WORK_DIR
+    timings = report["timings"]
+    t0 = time.perf_counter()
+    log.info("SfM: %s mapping", mapper)
+    run = global_then_incremental if mapper == "global" else incremental
+    models = run(db, ws.images_dir, work / mapper, cfg.sfm_options())
+    timings["map_s"] = timings.get("map_s", 0.0) + time.perf_counter() - t0
+    if not models:
+        return None
+    report["models_found"] = [m.num_reg_images() for m in models]
+    rec = models[0]
+    if len(models) > 1 and rec.num_reg_images() < len(names):
+        t0 = time.perf_counter()
+        merged = merge_models(models, db, ws.images_dir, work / "merged", cfg.sfm_options())
+        if merged is not None and merged.num_reg_images() > rec.num_reg_images():
+            report["events"].append(f"{len(models)} models merged by their common frames: {merged.num_reg_images()} frames")
+            rec = merged
+        timings["merge_s"] = timings.get("merge_s", 0.0) + time.perf_counter() - t0
+    if mapper == "incremental" and rec.num_reg_images() < len(names):
+        t0 = time.perf_counter()
+        rec = _extend(rec, db, vocab, names, ws, cfg, report)
+        timings["extend_s"] = timings.get("extend_s", 0.0) + time.perf_counter() - t0
+    return rec
+
+
+def _most_consistent(db: Path, vocab: Path | None, names: list[str], ws: Workspace, cfg: PosesConfig, report: dict):
+    """Each mapper of ``cfg.mapper`` (``auto``: incremental and global); among the models that register nearly as many
+    frames as the best, the one whose matched pairs it contradicts least (:mod:`plantsplat.poses.consistency`)."""
+    from plantsplat.poses.consistency import contradiction, pair_errors
+
+    mappers = ["incremental", "global"] if cfg.mapper == "auto" else [cfg.mapper]
+    found = {}
+    for m in mappers:
+        rec = _map(db, vocab, names, ws, cfg, report, m)
+        if rec is not None:
+            found[m] = (rec, contradiction(pair_errors(rec, db), cfg.max_pair_error_px))
+    if not found:
+        return None
+    most = max(r.num_reg_images() for r, _ in found.values())
+    best = min((m for m, (r, _) in found.items() if r.num_reg_images() >= cfg.mapper_keep_share * most),
+               key=lambda m: found[m][1])
+    report["mappers"] = {m: {"registered": r.num_reg_images(), "contradicted_share": round(c, 4)}
+                         for m, (r, c) in found.items()}
+    report["mapper"] = best
+    if len(found) > 1:
+        report["events"].append(f"{best} mapping kept: its matches contradict it least")
+    return found[best][0]
+
+
 def register(ws: Workspace, names: list[str], cfg: PosesConfig, report: dict):
     """SfM on whole frames (no masks, no cube); returns the model (model frame) with the most frames."""
-    from plantsplat.poses.sfm import (
-        extract_features,
-        global_mapping,
-        incremental,
-        merge_models,
-    )
+    from plantsplat.poses.sfm import extract_features
 
     work = ws.root / WORK_DIR
     timings = report["timings"]
@@ -200,29 +262,11 @@ def register(ws: Workspace, names: list[str], cfg: PosesConfig, report: dict):
     t0 = time.perf_counter()
     vocab = _match(db, work, names, cfg, report)
     timings["match_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    log.info("SfM: %s mapping", cfg.mapper)
-    mapper = global_mapping if cfg.mapper == "global" else incremental
-    models = mapper(db, ws.images_dir, work / cfg.mapper, cfg.sfm_options())
-    timings["map_s"] = time.perf_counter() - t0
-    report["mapper"] = cfg.mapper
-    if not models:
+    rec = _most_consistent(db, vocab, names, ws, cfg, report)
+    if rec is None:
         raise PlantsplatError(
             f"{ws.images_dir}: COLMAP could not reconstruct any model from {len(names)} frames; the frames may be "
             "too blurry, too few or too far apart (keep 6-12 degrees between neighbours)", exit_code=EXIT_POSES_FAILED)
-    report["models_found"] = [m.num_reg_images() for m in models]
-    rec = models[0]
-    if len(models) > 1 and rec.num_reg_images() < len(names):
-        t0 = time.perf_counter()
-        merged = merge_models(models, db, ws.images_dir, work / "merged", cfg.sfm_options())
-        if merged is not None and merged.num_reg_images() > rec.num_reg_images():
-            report["events"].append(f"{len(models)} models merged by their common frames: {merged.num_reg_images()} frames")
-            rec = merged
-        timings["merge_s"] = time.perf_counter() - t0
-    if cfg.mapper == "incremental" and rec.num_reg_images() < len(names):
-        t0 = time.perf_counter()
-        rec = _extend(rec, db, vocab, names, ws, cfg, report)
-        timings["extend_s"] = time.perf_counter() - t0
     return rec
 
 
@@ -283,10 +327,30 @@ def _composed(new, old):
     return new
 
 
-def calibrate_model(rec, markers: Markers, cube: CubeSpec, cfg: PosesConfig, sfm: bool, report: dict):
+def _leave_out_cube_misses(rec, cal, cfg: PosesConfig, report: dict) -> None:
+    """Deregister the cameras whose every marker detection the calibrated cube misses by more than
+    ``cfg.max_camera_cube_px``: the cube stands where most frames see it, so these cameras are misplaced."""
+    kept = set(cal.frame_residuals_px)
+    worst: dict[str, float] = {}
+    for name, _, rms in cal.detections_rejected:
+        if name not in kept:
+            worst[name] = min(worst.get(name, np.inf), rms)
+    drop = sorted(n for n, e in worst.items() if e > cfg.max_camera_cube_px)
+    reg = _registered(rec)
+    for n in drop:
+        if n in reg:
+            rec.deregister_frame(reg[n].frame_id)
+    if drop:
+        log.warning("%d frame(s) left out: the cube reprojects far from their own markers (%s)", len(drop), ", ".join(drop[:10]))
+        report["events"].append(f"{len(drop)} frame(s) whose markers the cube misses left out")
+    report["cube_misses"] = drop
+
+
+def calibrate_model(rec, markers: Markers, cube: CubeSpec, cfg: PosesConfig, sfm: bool, report: dict,
+                    order: list[str] | None = None):
     """Move ``rec`` into the cube frame (cm, z up); with ``sfm``, bundle-adjust on the cube's corners. Returns the
-    calibration (None without markers)."""
-    from plantsplat.poses.calibrate import calibrate, refine_with_cube
+    calibration (None without markers). ``order``: the frames in video order, for the scale's uncertainty."""
+    from plantsplat.poses.calibrate import calibrate, refine_with_cube, scale_uncertainty
     from plantsplat.poses.sfm import colmap_logging
 
     det = markers.frames
@@ -294,6 +358,9 @@ def calibrate_model(rec, markers: Markers, cube: CubeSpec, cfg: PosesConfig, sfm
     if cal is None:
         return None
     rec.transform(cal.to_pycolmap())
+    if sfm:
+        _leave_out_cube_misses(rec, cal, cfg, report)
+    report["scale_uncertainty"] = scale_uncertainty(rec, det, order or sorted(det), cube, cfg.max_residual_px)
     if sfm and cfg.cube_bundle_adjustment and cal.consistent:
         t0 = time.perf_counter()
         with colmap_logging(cfg.colmap_log):
@@ -301,6 +368,7 @@ def calibrate_model(rec, markers: Markers, cube: CubeSpec, cfg: PosesConfig, sfm
         if n_ctrl:
             cal2 = calibrate(rec, det, cube, cfg.max_residual_px)
             if cal2 is not None and cal2.consistent:
+                report["scale_uncertainty"]["bundle_adjustment_change"] = float(np.log(cal2.scale))
                 rec.transform(cal2.to_pycolmap())  # a small correction: the control points fix the frame
                 cal = _composed(cal2, cal)
             report["events"].append(f"bundle adjustment with {n_ctrl} cube corners as control points")
@@ -337,9 +405,15 @@ def model_checks(rec, cal, markers: Markers, cube: CubeSpec, names: list[str], t
     """Every check of the final model (see :mod:`plantsplat.poses.checks`)."""
     reg = len(_registered(rec))
     checks = [Check("registered_share", reg / len(names), cfg.min_registered, ">=",
-                    f"{reg} of {len(names)} frames registered and on the camera's path")]
+                    f"{reg} of {len(names)} frames registered and on the camera's path"),
+              Check("registered_share_all", reg / len(names), cfg.warn_registered, ">=",
+                    f"{len(names) - reg} frame(s) left out; the later stages use the {reg} others", severity="warn")]
     if cal is not None:
         checks += cube_checks(rec, cal, markers, cube, dict(zip(names, times)), cfg)
+        seen = len(markers.frames)
+        checks.append(Check("cube_frames_share", seen / len(names), cfg.min_cube_frames, ">=",
+                            f"the cube's markers were found in {seen} of {len(names)} frames; a scale to trust needs "
+                            "them seen from several sides", severity="warn"))
     return checks
 
 
@@ -442,7 +516,7 @@ def estimate_poses(ws: Workspace | str | Path, cfg: PosesConfig | None = None) -
     if sfm:
         leave_out_off_path(rec, names, times, cfg, report)
     t0 = time.perf_counter()
-    cal = calibrate_model(rec, markers, cube, cfg, sfm, report)
+    cal = calibrate_model(rec, markers, cube, cfg, sfm, report, [n for _, n in sorted(zip(times, names))])
     report["timings"]["calibrate_s"] = time.perf_counter() - t0
     if cal is None and cfg.calibrate:
         log.warning("NO CUBE MARKERS FOUND in %s (dictionary %s): the model is NOT metric and z is not up; traits will "
@@ -454,10 +528,13 @@ def estimate_poses(ws: Workspace | str | Path, cfg: PosesConfig | None = None) -
     _describe(report, rec, cal, cfg, names)
     report["timings"]["total_s"] = time.perf_counter() - t_start
     report["timings"] = {k: round(v, 3) for k, v in report["timings"].items()}
-    failed = [c for c in checks if not c.passed]
+    failed = [c for c in checks if not c.passed and c.severity == "fail"]
     if failed:
         raise _fail(ws, rec, report, failed, cfg)
-    report["status"] = "ok"
+    warned = [c for c in checks if not c.passed]
+    report["status"] = "warning" if warned else "ok"
+    for c in warned:
+        log.warning("poses: %s", c.line())
     _write_outputs(ws, rec, cal, report, cfg)
     write_json_atomic(ws.poses_json, report)
     log.info("poses: %d/%d frames registered, reprojection %s px, scale %s", report["registered"], len(names),

@@ -39,6 +39,8 @@ class SfmConfig:
     peak_threshold: float = 0.004
     max_image_size: int = 1600
     ransac_max_trials: int = 2000
+    min_pose_inliers: int = 15
+    min_pose_inlier_ratio: float = 0.1
     num_threads: int = 2
     seed: int = 0
     verbose: bool = False
@@ -156,6 +158,8 @@ def incremental(db: Path, image_dir: Path, out_dir: Path, opts: SfmConfig, input
     o.mapper.random_seed = opts.seed
     o.triangulation.random_seed = opts.seed
     o.min_model_size = 3
+    o.mapper.abs_pose_min_num_inliers = opts.min_pose_inliers
+    o.mapper.abs_pose_min_inlier_ratio = opts.min_pose_inlier_ratio
     with colmap_logging(opts.verbose):
         models = pycolmap.incremental_mapping(db, image_dir, out_dir, options=o,
                                               input_path=str(input_path) if input_path else "")
@@ -177,6 +181,22 @@ def global_mapping(db: Path, image_dir: Path, out_dir: Path, opts: SfmConfig) ->
     with colmap_logging(opts.verbose):
         models = pycolmap.global_mapping(db, image_dir, out_dir, options=o)
     return sorted(models.values(), key=lambda r: -r.num_reg_images())
+
+
+def global_then_incremental(db: Path, image_dir: Path, out_dir: Path, opts: SfmConfig) -> list:
+    """Global mapping, then COLMAP's incremental mapper continued from its largest model (frames it left out are
+    registered, points triangulated again, bundle adjustment); largest first. The global solve closes the orbit's
+    loop over every pair at once; the continuation repairs the cameras it placed badly."""
+    models = global_mapping(db, image_dir, out_dir / "global", opts)
+    if not models:
+        return []
+    write_model(models[0], out_dir / "seed", opts.verbose)
+    try:
+        cont = incremental(db, image_dir, out_dir / "continued", opts, input_path=out_dir / "seed")
+    except Exception as exc:  # COLMAP refuses a seed it cannot extend: keep the global model
+        log.debug("continued mapping failed: %s", exc)
+        cont = []
+    return cont if cont and cont[0].num_reg_images() >= models[0].num_reg_images() else models
 
 
 def write_model(rec, out_dir: Path, verbose: bool = False) -> None:

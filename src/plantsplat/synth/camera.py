@@ -76,12 +76,12 @@ def smooth_noise(rng: np.random.Generator, t: np.ndarray, n_waves: int = 4, peri
 
 
 def camera_path(rng: np.random.Generator, n: int, soil_z: float, plant_height: float, reach: float,
-                fov_short_deg: float) -> tuple[list[np.ndarray], list[str], dict]:
+                fov_short_deg: float, shake: float = 1.0) -> tuple[list[np.ndarray], list[str], dict]:
     """``n`` camera-to-world poses circling the plant three times (one loop per ring).
 
     ``reach`` is the horizontal radius (cm) around the pot axis that must stay in view (plant and
     cube). Returns ``(c2w list, ring label per frame, path parameters)``; the label is the ring whose
-    height band contains the camera's height above the soil.
+    height band contains the camera's height above the soil. ``shake`` scales the hand-held jitter.
     """
     heights = {"low": rng.uniform(1.0, 4.0), "mid": rng.uniform(8.0, 17.0), "high": rng.uniform(25.0, 45.0)}
     order = ["low", "mid", "high"] if rng.random() < 0.5 else ["high", "mid", "low"]
@@ -104,8 +104,8 @@ def camera_path(rng: np.random.Generator, n: int, soil_z: float, plant_height: f
     r_ring = {"low": dist * rng.uniform(0.95, 1.1), "mid": dist, "high": dist * rng.uniform(0.85, 1.0)}
     rr = np.array([r_ring[r] for r in order])
     radius = (1 - w) * rr[seg] + w * rr[nxt]
-    jit = rng.uniform(0.5, 2.0)  # cm
-    rot_jit = np.radians(rng.uniform(0.5, 2.0))
+    jit = rng.uniform(0.5, 2.0) * shake  # cm
+    rot_jit = np.radians(rng.uniform(0.5, 2.0) * shake)
     eye = np.stack([radius * np.cos(az), radius * np.sin(az), soil_z + h], 1)
     eye += jit * np.stack([smooth_noise(rng, t) for _ in range(3)], 1)
     aim_z = soil_z + plant_height * np.interp(h, [0, 45], [0.4, 0.1])

@@ -136,7 +136,7 @@ def generate(cfg: SynthConfig) -> dict:
 
     t = time.perf_counter()
     log.info("synth seed %d: building the plant, pot, cube and room", cfg.seed)
-    scene = make_scene(np.random.default_rng(s_scene), cube)
+    scene = make_scene(np.random.default_rng(s_scene), cube, hard=cfg.hard)
     tex_size = 512 if max(cfg.width, cfg.height) > 480 else 256  # small frames: smaller textures, same look
     layers = make_layers(np.random.default_rng(s_tex), size=tex_size, cube=cube)
     timings["scene_s"] = time.perf_counter() - t
@@ -163,12 +163,16 @@ def generate(cfg: SynthConfig) -> dict:
     fov_short = float(np.degrees(2 * np.arctan(0.5 * min(cfg.width, cfg.height) / intr["fx"])))
     T_wc = scene["cube"]["T_world_cube"]
     cube_pts = cube.corners() @ T_wc[:3, :3].T + T_wc[:3, 3]
-    reach = float(max(np.linalg.norm(plant["xyz"][:, :2], axis=1).max(), np.linalg.norm(cube_pts[:, :2], axis=1).max()))
+    reach_plant = float(np.linalg.norm(plant["xyz"][:, :2], axis=1).max())
+    reach = max(reach_plant, float(np.linalg.norm(cube_pts[:, :2], axis=1).max()))
+    if cfg.hard:  # framed mostly on the plant: the cube leaves the frame at times
+        reach = reach_plant + 0.3 * (reach - reach_plant)
     pot = scene["pot"]
-    c2ws, rings, path = cam.camera_path(rng_cam, cfg.frames, pot.soil_z, traits["height_extent_cm"], reach, fov_short)
+    c2ws, rings, path = cam.camera_path(rng_cam, cfg.frames, pot.soil_z, traits["height_extent_cm"], reach, fov_short,
+                                        shake=2.0 if cfg.hard else 1.0)
 
     # render
-    sensor = SensorModel.draw(np.random.default_rng(s_sensor), cfg.frames, clean=cfg.clean)
+    sensor = SensorModel.draw(np.random.default_rng(s_sensor), cfg.frames, clean=cfg.clean, hard=cfg.hard)
     t = time.perf_counter()
     renderer = Renderer(scene["meshes"], layers, intr, scene["lights"], samples=cfg.msaa,
                         shadow_radius=scene["platform"]["radius_cm"] + 100.0,
@@ -255,7 +259,7 @@ def generate(cfg: SynthConfig) -> dict:
                                    "5": "peduncle", "6": "flower", "10": "cube"})
     timings["total_s"] = time.perf_counter() - t_all
     doc = dict(
-        format=FORMAT, seed=int(cfg.seed), units="cm", world_frame=WORLD_FRAME,
+        format=FORMAT, seed=int(cfg.seed), hard=bool(cfg.hard), units="cm", world_frame=WORLD_FRAME,
         **{k: traits[k] for k in TRAIT_KEYS},
         fruit_count_all=int(scene["plant_info"]["n_fruits"]),
         trait_source="plant_gt.ply (all plant mesh vertices + area-uniform samples), plantsplat.traitdefs",

@@ -32,6 +32,9 @@ class SynthConfig:
     class_maps: bool = False
     """Also write classes/: the class id of the surface seen through each pixel centre (the masks' rule), so that
     mask errors can be told apart by organ and scene part (ids named in :data:`plantsplat.synth.mesh.CLASS_NAMES`)."""
+    hard: bool = False
+    """A harder capture, like many real ones: blank walls, the cube 5-15 cm from the pot and framed with the plant
+    alone (its markers are seen in only part of the frames), twice the hand-held shake and larger exposure changes."""
     crf: int = 18
     """H.264 constant rate factor (lower = better quality, bigger file)."""
     msaa: int = 4

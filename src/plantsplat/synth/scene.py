@@ -221,17 +221,22 @@ def _furniture(rng, room, floor_z, avoid_r) -> tuple[list[Mesh], list[dict]]:
     return meshes, items
 
 
-def make_scene(rng: np.random.Generator, cube: CubeSpec = CubeSpec()) -> dict:
+def make_scene(rng: np.random.Generator, cube: CubeSpec = CubeSpec(), hard: bool = False) -> dict:
     """Draw the whole scene for one seed.
 
     Returns a dict with ``meshes`` (list of :class:`Mesh`), ``plant_meshes`` (the plant's own meshes),
     ``cube`` (spec, ``T_world_cube``, marker corners), ``pot``, ``platform``, ``room``, ``lights`` and
-    ``plant_info``.
+    ``plant_info``. ``hard``: the cube 5-15 cm from the pot's rim and blank walls (the same draws, mapped
+    onto those ranges, so that a seed's plant is the same either way).
     """
     pot = make_pot(rng)
     # cube beside the pot on the platform
     cube_az = rng.uniform(0, 2 * np.pi)
-    cube_d = pot.top_radius + pot.lip + cube.size / 2 * np.sqrt(2) * rng.uniform(0.75, 1.0) + rng.uniform(0.5, 6)
+    corner = cube.size / 2 * np.sqrt(2) * rng.uniform(0.75, 1.0)
+    gap = rng.uniform(0.5, 6)
+    if hard:
+        gap = 5.0 + (gap - 0.5) / 5.5 * 10.0
+    cube_d = pot.top_radius + pot.lip + corner + gap
     yaw = rng.uniform(0, np.pi / 2)
     T_wc = np.eye(4)
     T_wc[:3, :3] = rot_z(yaw)
@@ -271,7 +276,7 @@ def make_scene(rng: np.random.Generator, cube: CubeSpec = CubeSpec()) -> dict:
     meshes.append(quad_mesh(np.array([[x0, y1, top], [x1, y1, top], [x1, y0, top], [x0, y0, top]]),
                             np.zeros((4, 2)), (0.9, 0.9, 0.9), layer=T.WHITE, cls=WALL))
     wall_corners = [((x0, y0), (x0, y1)), ((x0, y1), (x1, y1)), ((x1, y1), (x1, y0)), ((x1, y0), (x0, y0))]
-    plain = rng.random() < 0.25
+    plain = rng.random() < 0.25 or hard
     for k, (a, b) in enumerate(wall_corners):
         a, b = np.array(a), np.array(b)
         length = np.linalg.norm(b - a)

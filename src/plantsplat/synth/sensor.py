@@ -48,11 +48,12 @@ class SensorModel:
     base_gain: float = 1.0  # set by calibrate()
 
     @classmethod
-    def draw(cls, rng: np.random.Generator, n_frames: int, clean: bool = False) -> SensorModel:
+    def draw(cls, rng: np.random.Generator, n_frames: int, clean: bool = False, hard: bool = False) -> SensorModel:
+        """A seed's sensor; ``hard``: exposure drift 2.5 times as large (up to about a stop)."""
         t = (np.arange(n_frames) + 0.5) / max(n_frames, 1)
         if clean:
             return cls(np.zeros(n_frames), np.ones((n_frames, 3)), np.zeros(n_frames), 0.0, 0.0, 0.0)
-        amp = rng.uniform(0.08, 0.35)
+        amp = rng.uniform(0.08, 0.35) * (2.5 if hard else 1.0)
         ev = amp * smooth_noise(rng, t, 3, (0.3, 1.0))
         wb = 1.0 + rng.uniform(0.01, 0.04) * np.stack([smooth_noise(rng, t, 2, (0.4, 1.2)) for _ in range(3)], 1)
         max_blur = rng.uniform(0.5, 3.0)
