@@ -159,7 +159,7 @@ def test_foreign_capture_registers_without_masks_or_cube(datasets_dir, tmp_path)
 
 def test_model_agrees_with_its_pairs_and_a_moved_camera_does_not(synth_run):
     """The model's matched pairs fit its epipolar geometry; tilting one camera by 3 degrees makes the model
-    contradict that frame's pairs (what the poses stage uses to choose between mappers)."""
+    contradict that frame's pairs, and no others (what the poses stage uses to choose between mappers)."""
     import pycolmap
 
     from plantsplat.poses.consistency import contradicted, contradiction, pair_errors
@@ -177,7 +177,8 @@ def test_model_agrees_with_its_pairs_and_a_moved_camera_does_not(synth_run):
     # epipolar lines of an orbit (a pan moves points along them between neighbours on a ring)
     im.frame.rig_from_world = turn * im.frame.rig_from_world
     bad = set(contradicted(pair_errors(rec, db), 4.0))
-    assert moved and moved <= bad
+    assert len(moved) >= 5 and len(moved & bad) >= 0.8 * len(moved)  # a pair whose baseline lies along the tilt
+    assert all(im.name in p for p in bad - set(contradicted(errors, 4.0)))  # sees none of it; others are untouched
 
 
 def test_scale_uncertainty_from_the_frames_that_see_the_cube(synth_run):
@@ -190,3 +191,17 @@ def test_scale_uncertainty_from_the_frames_that_see_the_cube(synth_run):
     det = read_markers(ws.markers_json).frames
     one = dict([next(iter(det.items()))])
     assert scale_uncertainty(read_colmap(ws.sparse_dir), one, sorted(one))["relative_se"] is None
+
+
+def test_the_same_frames_give_the_same_cameras(synth_run, tmp_path):
+    """Same input, same output: a second run on a copy of the frames registers the same cameras (issue 42, case 9;
+    the extractor's threads once numbered the frames in a different order, and the mapper's threads once chose
+    between two models at random)."""
+    cap, ws, report = synth_run
+    ws2 = Workspace(tmp_path / "again")
+    shutil.copytree(ws.images_dir, ws2.images_dir)
+    again = estimate_poses(ws2, PosesConfig())
+    assert again["pairs"] == report["pairs"] and again["registered"] == report["registered"]
+    a, b = transforms_c2w(read_json(ws.transforms_json)), transforms_c2w(read_json(ws2.transforms_json))
+    assert set(a) == set(b) and max(np.abs(a[n] - b[n]).max() for n in a) < 1e-6
+    assert again["similarity"]["scale"] == pytest.approx(report["similarity"]["scale"], rel=1e-9)

@@ -300,6 +300,36 @@ def test_frames_off_the_camera_path_are_found(ring_change):
     assert off_path({n: M for n, M in gt.items() if n not in (names[10], names[33])}, names, list(steps), limit) == []
 
 
+@pytest.mark.parametrize("ring_change", [False, True])
+def test_a_stretch_posed_as_a_block_elsewhere_is_found(ring_change):
+    """Three consecutive frames moved together by 9 cm agree with each other (the per-frame check keeps them all);
+    predicted from the frames on either side of them, they are found, and nothing else is."""
+    from plantsplat.poses.checks import off_path, off_path_runs
+    from plantsplat.poses.estimate import PosesConfig
+
+    limit = PosesConfig().max_path_deviation
+    steps = np.cumsum([0] + [1 + (i % 2) for i in range(47)]).astype(float)
+    gt = video_orbit(steps, ring_change)
+    names = sorted(gt)
+    assert off_path_runs(gt, names, list(steps), limit) == []
+    bad = {n: M.copy() for n, M in gt.items()}
+    for n in names[10:13]:
+        bad[n][:3, 3] += [6.0, -6.0, 3.0]
+    assert not set(names[10:13]) & set(off_path(bad, names, list(steps), limit))
+    assert off_path_runs(bad, names, list(steps), limit) == names[10:13]
+
+
+def test_a_camera_looking_away_is_found():
+    from plantsplat.poses.checks import facing_away
+
+    gt = orbit(24)
+    assert facing_away(gt) == []
+    names = sorted(gt)
+    bad = dict(gt)
+    bad[names[5]] = gt[names[5]] @ np.diag([-1.0, 1.0, -1.0, 1.0])  # turned round (180 degrees about its y axis)
+    assert facing_away(bad) == [names[5]]
+
+
 def test_face_offsets_find_a_face_out_of_place():
     """SfM points on the cube's faces: in place on a right model; a face 4 mm out shows as its offset."""
     from plantsplat.poses.checks import face_offsets

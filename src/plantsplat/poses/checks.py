@@ -154,6 +154,59 @@ def off_path(c2w: dict[str, np.ndarray], names: list[str], times: list[float], l
     return dropped
 
 
+def _run_deviation(c2w: dict, run: list[tuple[str, float]], a: tuple[str, float], b: tuple[str, float],
+                   centre: np.ndarray | None) -> float:
+    """The smallest deviation of the frames of ``run`` from their poses predicted from frames ``a`` and ``b``
+    (``(name, time)``), in units of the spacing (position) and twice the turn (rotation) of ``a`` and ``b``."""
+    devs = []
+    for n, t in run:
+        C, R, spacing, turn = _predict(c2w, a[0], b[0], a[1], b[1], t, centre)
+        devs.append(max(float(np.linalg.norm(c2w[n][:3, 3] - C)) / max(spacing, 1e-12),
+                        _angle_deg(R.T @ c2w[n][:3, :3]) / max(turn, 1.0) / 2.0))
+    return min(devs)
+
+
+def off_path_runs(c2w: dict[str, np.ndarray], names: list[str], times: list[float], limit: float,
+                  max_run: int = 4) -> list[str]:
+    """Runs of up to ``max_run`` consecutive registered frames that agree with each other but not with the path
+    of the frames around them (a short stretch posed as a block somewhere else, which :func:`off_path`
+    cannot see: each of its frames is predicted well from the others).
+
+    A run is predicted along the orbit (:func:`_predict`) from the registered frames just before and
+    just after it, and from the two before it and the two after it; it is off when, for each of those
+    predictions, every frame of it deviates by more than ``limit`` of the two frames' spacing (position) or
+    of twice their turn (rotation). A run that starts a new ring agrees with the frames after it, so it
+    stays. Longer runs are judged first.
+    """
+    reg = [(n, t) for n, t in zip(names, times) if n in c2w]
+    centre = orbit_centre([c2w[n] for n, _ in reg])
+    dropped: set[str] = set()
+    for k in range(max_run, 0, -1):  # a run that holds a right frame is not off: longer runs first
+        keep = [r for r in reg if r[0] not in dropped]
+        for i in range(2, len(keep) - k - 1):
+            run = keep[i:i + k]
+            sides = [(keep[i - 1], keep[i + k]), (keep[i - 2], keep[i - 1]), (keep[i + k], keep[i + k + 1])]
+            if min(_run_deviation(c2w, run, a, b, centre) for a, b in sides) > limit:
+                dropped.update(n for n, _ in run)
+    return [n for n, _ in reg if n in dropped]
+
+
+def facing_away(c2w: dict[str, np.ndarray], max_angle_deg: float = 60.0) -> list[str]:
+    """Cameras whose optical axis turns more than ``max_angle_deg`` away from the point every camera looks at
+    (:func:`orbit_centre`): on an orbit around a plant no camera looks away from it. ``c2w``: camera-to-world
+    poses (OpenCV axes)."""
+    centre = orbit_centre(list(c2w.values()))
+    if centre is None:
+        return []
+    out = []
+    for n, M in c2w.items():
+        to_centre = centre - M[:3, 3]
+        cos = float(M[:3, 2] @ to_centre / max(np.linalg.norm(to_centre), 1e-12))
+        if cos < np.cos(np.radians(max_angle_deg)):
+            out.append(n)
+    return out
+
+
 def face_offsets(points: np.ndarray, cube, band: float = 0.6, margin: float = 0.7,
                  min_points: int = 10) -> dict[str, tuple[float, int]]:
     """Where SfM points near each face of the cube lie, along the face's normal (cube frame, cm).

@@ -303,19 +303,23 @@ def _import(ws: Workspace, names: list[str], cfg: PosesConfig, report: dict):
 
 
 def leave_out_off_path(rec, names: list[str], times: list[float], cfg: PosesConfig, report: dict) -> list[str]:
-    """Deregister the frames whose camera leaves the path of its video neighbours; returns their names."""
-    from plantsplat.poses.checks import off_path
+    """Deregister the frames whose camera looks away from what the cameras circle or leaves the path of its video
+    neighbours; returns their names."""
+    from plantsplat.poses.checks import facing_away, off_path, off_path_runs
     from plantsplat.poses.interop import c2w_opencv
 
     reg = _registered(rec)
-    drop = off_path({n: c2w_opencv(im) for n, im in reg.items()}, names, times, cfg.max_path_deviation)
+    c2w = {n: c2w_opencv(im) for n, im in reg.items()}
+    drop = facing_away(c2w)
+    drop += off_path({n: M for n, M in c2w.items() if n not in drop}, names, times, cfg.max_path_deviation)
+    drop += off_path_runs({n: M for n, M in c2w.items() if n not in drop}, names, times, cfg.max_path_deviation)
     for n in drop:
         rec.deregister_frame(reg[n].frame_id)
     if drop:
         shown = ", ".join(drop[:10]) + (f" and {len(drop) - 10} more" if len(drop) > 10 else "")
         log.warning("%d frame(s) left out: their cameras leave the path of their video neighbours (%s)", len(drop), shown)
         report["events"].append(f"{len(drop)} frame(s) off the camera's path left out")
-    report["off_path"] = drop
+    report["off_path"] = sorted(set(report.get("off_path", [])) | set(drop))
     return drop
 
 
@@ -325,6 +329,27 @@ def _composed(new, old):
     s = float(np.cbrt(np.linalg.det(m[:3, :3])))
     new.scale, new.R, new.t = s, m[:3, :3] / s, m[:3, 3]
     return new
+
+
+def _second_chance(rec, ws: Workspace, names: list[str], times: list[float], cfg: PosesConfig, report: dict) -> None:
+    """Frames left out so far, localised against the model's points (:mod:`plantsplat.poses.localize`); those
+    whose camera then lies on the path of its video neighbours stay."""
+    from plantsplat.poses.localize import add_frames, localize_frames
+
+    missing = [n for n in names if n not in _registered(rec)]
+    if not missing or not rec.num_points3D():
+        return
+    t0 = time.perf_counter()
+    added = add_frames(rec, ws.root / WORK_DIR / "database.db", localize_frames(rec, ws.root / WORK_DIR / "database.db",
+                                                                                missing))
+    before = set(report.get("off_path", []))
+    dropped = set(leave_out_off_path(rec, names, times, cfg, report)) if added else set()
+    report["off_path"] = sorted(before | (dropped - set(added)))
+    kept = [n for n in added if n not in dropped]
+    report["localized"] = kept
+    report["timings"]["localize_s"] = time.perf_counter() - t0
+    if kept:
+        report["events"].append(f"{len(kept)} frame(s) left out at first localised against the model")
 
 
 def _leave_out_cube_misses(rec, cal, cfg: PosesConfig, report: dict) -> None:
@@ -351,7 +376,7 @@ def calibrate_model(rec, markers: Markers, cube: CubeSpec, cfg: PosesConfig, sfm
     """Move ``rec`` into the cube frame (cm, z up); with ``sfm``, bundle-adjust on the cube's corners. Returns the
     calibration (None without markers). ``order``: the frames in video order, for the scale's uncertainty."""
     from plantsplat.poses.calibrate import calibrate, refine_with_cube, scale_uncertainty
-    from plantsplat.poses.sfm import colmap_logging
+    from plantsplat.poses.sfm import MAP_THREADS, colmap_logging
 
     det = markers.frames
     cal = calibrate(rec, det, cube, cfg.max_residual_px) if det else None
@@ -364,7 +389,7 @@ def calibrate_model(rec, markers: Markers, cube: CubeSpec, cfg: PosesConfig, sfm
     if sfm and cfg.cube_bundle_adjustment and cal.consistent:
         t0 = time.perf_counter()
         with colmap_logging(cfg.colmap_log):
-            n_ctrl = refine_with_cube(rec, det, cal, cube, cfg.num_threads)
+            n_ctrl = refine_with_cube(rec, det, cal, cube, MAP_THREADS)
         if n_ctrl:
             cal2 = calibrate(rec, det, cube, cfg.max_residual_px)
             if cal2 is not None and cal2.consistent:
@@ -518,6 +543,10 @@ def estimate_poses(ws: Workspace | str | Path, cfg: PosesConfig | None = None) -
     t0 = time.perf_counter()
     cal = calibrate_model(rec, markers, cube, cfg, sfm, report, [n for _, n in sorted(zip(times, names))])
     report["timings"]["calibrate_s"] = time.perf_counter() - t0
+    if sfm and cal is not None:  # the cube's bundle adjustment moves weakly held cameras: judge the path again
+        leave_out_off_path(rec, names, times, cfg, report)
+    if sfm:
+        _second_chance(rec, ws, names, times, cfg, report)
     if cal is None and cfg.calibrate:
         log.warning("NO CUBE MARKERS FOUND in %s (dictionary %s): the model is NOT metric and z is not up; traits will "
                     "be in model units unless the traits stage finds the cube in the point cloud", ws.images_dir,

@@ -66,7 +66,7 @@ def retrieval_pairs(db: Path, vocabulary: Path, neighbours: int, num_threads: in
     opts = pycolmap.VocabTreePairingOptions()
     opts.vocab_tree_path = str(vocabulary)
     opts.num_images = neighbours + 1  # the frame itself comes first
-    opts.num_threads = num_threads
+    opts.num_threads = 1  # with more threads, ties among the scores come out in a different order on each run
     with pycolmap.Database.open(str(db)) as d:
         ids = {im.image_id: im.name for im in d.read_all_images()}
         by_name = {n: i for i, n in ids.items()}

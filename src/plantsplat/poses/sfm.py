@@ -27,6 +27,9 @@ from plantsplat.log import get_logger
 log = get_logger(__name__)
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+MAP_THREADS = 1
+"""Threads of the mappers and bundle adjustments. With two, the incremental mapper gave one of two models of the same
+matches at random (about one run in six, 2026-11-26); with one it gives the same model every time, as fast."""
 
 
 @dataclass
@@ -98,6 +101,11 @@ def extract_features(image_dir: Path, names: list[str], work_dir: Path, opts: Sf
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = opts.camera_model
     with colmap_logging(opts.verbose):
+        # images first, one by one in name order: their ids (which the mappers' choices follow) are then the same on
+        # every run, where the threaded extractor numbers them in the order its threads finish
+        pycolmap.Database.open(str(db)).close()
+        pycolmap.import_images(db, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, image_names=sorted(names),
+                               options=reader)
         pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
                                   reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu)
     return db
@@ -153,11 +161,12 @@ def incremental(db: Path, image_dir: Path, out_dir: Path, opts: SfmConfig, input
 
     _fresh(out_dir)
     o = pycolmap.IncrementalPipelineOptions()
-    o.num_threads = opts.num_threads
+    o.num_threads = MAP_THREADS
     o.random_seed = opts.seed
     o.mapper.random_seed = opts.seed
     o.triangulation.random_seed = opts.seed
     o.min_model_size = 3
+    pycolmap.set_random_seed(opts.seed)  # whatever ran before in this process: the same draws
     o.mapper.abs_pose_min_num_inliers = opts.min_pose_inliers
     o.mapper.abs_pose_min_inlier_ratio = opts.min_pose_inlier_ratio
     with colmap_logging(opts.verbose):
@@ -172,11 +181,12 @@ def global_mapping(db: Path, image_dir: Path, out_dir: Path, opts: SfmConfig) ->
 
     _fresh(out_dir)
     o = pycolmap.GlobalPipelineOptions()
-    o.num_threads = opts.num_threads
+    o.num_threads = MAP_THREADS
     o.random_seed = opts.seed
-    o.mapper.num_threads = opts.num_threads
+    o.mapper.num_threads = MAP_THREADS
     o.mapper.random_seed = opts.seed
     o.mapper.global_positioning.use_gpu = False
+    pycolmap.set_random_seed(opts.seed)
     o.mapper.bundle_adjustment.ceres.use_gpu = False
     with colmap_logging(opts.verbose):
         models = pycolmap.global_mapping(db, image_dir, out_dir, options=o)
@@ -259,15 +269,17 @@ def retriangulate(like, poses: dict, db: Path, image_dir: Path, work_dir: Path, 
         rec.add_image_with_trivial_frame(im, pose)
     _fresh(work_dir)
     o = pycolmap.IncrementalPipelineOptions()
-    o.num_threads = opts.num_threads
+    o.num_threads = MAP_THREADS
     o.random_seed = opts.seed
+    o.triangulation.random_seed = opts.seed
+    pycolmap.set_random_seed(opts.seed)
     ba = pycolmap.BundleAdjustmentOptions()
     ba.refine_focal_length = True
     ba.refine_extra_params = True
     ba.refine_principal_point = False
     ba.print_summary = False
     ba.ceres.use_gpu = False
-    ba.ceres.solver_options.num_threads = opts.num_threads
+    ba.ceres.solver_options.num_threads = MAP_THREADS
     with colmap_logging(opts.verbose):
         rec = pycolmap.triangulate_points(rec, db, image_dir, work_dir, clear_points=True, options=o,
                                           refine_intrinsics=True)
