@@ -195,16 +195,55 @@ def test_resume_after_interrupt(synth_capture, tmp_path, monkeypatch):
     monkeypatch.setattr(trainer, "render", flaky)
     with pytest.raises(KeyboardInterrupt):
         train_stage(ws, cfg)
-    ck = load_checkpoint(ws.train_dir / "checkpoint.pt")
+    ck = load_checkpoint(ws.root / ".train.partial" / "checkpoint.pt")
     assert ck["step"] == 7 and not (ws.train_dir / "model.pt").exists()
     monkeypatch.setattr(trainer, "render", real_render)
     s = train_stage(ws, cfg)
     assert s["resumed"] is True and s["iterations"] == 16
     assert (ws.train_dir / "model.pt").is_file() and not (ws.train_dir / "checkpoint.pt").exists()
+    assert not (ws.root / ".train.partial").exists()
     # a finished model is not retrained; other options train afresh (never from the other run's files)
     assert train_stage(ws, cfg)["up_to_date"]
     other = train_stage(ws, TrainConfig(mode="full", iterations=16, max_resolution=64, num_downscales=0, evaluate=False))
     assert other["resumed"] is False and other["mode"] == "full"
+
+
+def test_retraining_keeps_the_finished_model_until_the_new_one_is_complete(synth_capture, tmp_path, monkeypatch):
+    """Issue 42 #2: a finished model re-trained with other options, then interrupted or failed, is still there
+    (model.pt, split.json, metrics.json as they were); the new run, once complete, replaces them whole."""
+    from plantsplat.io import write_image_atomic
+    from plantsplat.pipeline import train_stage
+    from plantsplat.train import trainer
+
+    ws = synth_workspace(synth_capture(), tmp_path / "ws", every=6)
+    small = {"max_resolution": 96, "num_downscales": 0, "checkpoint_seconds": 0, "init_points": 500}
+    train_stage(ws, TrainConfig(iterations=6, **small))
+    kept = {p: p.read_bytes() for p in (ws.train_dir / "model.pt", ws.train_dir / "split.json", ws.metrics_json)}
+    real_render = trainer.render
+    calls = {"n": 0}
+
+    def interrupted(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 4:
+            raise KeyboardInterrupt
+        return real_render(*a, **k)
+
+    monkeypatch.setattr(trainer, "render", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        train_stage(ws, TrainConfig(iterations=8, **small))
+    assert {p: p.read_bytes() for p in kept} == kept
+    monkeypatch.setattr(trainer, "render", real_render)
+    bad = ws.image_names()[0]
+    good_mask = (ws.masks_dir / bad).read_bytes()
+    write_image_atomic(ws.masks_dir / bad, np.zeros((10, 10), np.uint8))  # a corrupt mask: the forced run fails
+    with pytest.raises(PlantsplatError, match="segment"):
+        train_stage(ws, TrainConfig(iterations=8, **small), force=True)
+    assert {p: p.read_bytes() for p in kept} == kept
+    (ws.masks_dir / bad).write_bytes(good_mask)
+    s = train_stage(ws, TrainConfig(iterations=8, **small))
+    assert s["iterations"] == 8 and load_model(ws)[1]["config"]["iterations"] == 8
+    assert read_json(ws.metrics_json)["iterations"] == 8
+    assert not (ws.root / ".train.partial").exists() and not (ws.root / ".train.old").exists()
 
 
 def test_nan_loss_stops_and_keeps_checkpoint(synth_capture, tmp_path, monkeypatch):
@@ -228,7 +267,7 @@ def test_nan_loss_stops_and_keeps_checkpoint(synth_capture, tmp_path, monkeypatc
                               evaluate=False, init_points=2000)
     with pytest.raises(PlantsplatError, match="NaN.*checkpoint \\(step 4\\)"):
         trainer.train_workspace(ws, cfg)
-    assert (ws.train_dir / "checkpoint.pt").is_file()
+    assert (ws.root / ".train.partial" / "checkpoint.pt").is_file()
 
 
 def _nan_patch(g):
@@ -360,7 +399,7 @@ def test_occluders_from_sfm_points_resume_and_stay_out_of_the_export(synth_captu
         train_stage(ws, cfg)
     n_occ = calls["occ"]
     assert n_occ >= 20
-    ck = load_checkpoint(ws.train_dir / "checkpoint.pt")
+    ck = load_checkpoint(ws.root / ".train.partial" / "checkpoint.pt")
     assert ck["extra"]["occluders"]["means"].shape[0] == n_occ
     calls["occ"] = 0
     s = train_stage(ws, cfg)

@@ -100,23 +100,33 @@ def staged_dir(path: str | os.PathLike) -> Iterator[Path]:
     os.chmod(tmp, 0o777 & ~_UMASK)  # mkdtemp makes 0700; outputs get the usual permissions
     try:
         yield tmp
-        old = None
-        if path.exists():
-            old = path.with_name(f".{path.name}.old")
-            _remove(old)
-            os.replace(path, old)
-        os.replace(tmp, path)
-        if old is not None:
-            _remove(old)
+        replace_dir(tmp, path)
     except OSError as exc:
-        _remove(tmp)
+        remove_tree(tmp)
         raise PlantsplatError(os_error_message(exc, path)) from exc
     except BaseException:
-        _remove(tmp)
+        remove_tree(tmp)
         raise
 
 
-def _remove(path: Path) -> None:
+def replace_dir(new: str | os.PathLike, path: str | os.PathLike) -> None:
+    """Put the finished folder ``new`` in the place of ``path`` (the old ``path`` moved aside first, removed after).
+
+    Both must be on the same file system (a sibling, as :func:`staged_dir` and the train stage make).
+    """
+    new, path = Path(new), Path(path)
+    old = None
+    if path.exists():
+        old = path.with_name(f".{path.name}.old")
+        remove_tree(old)
+        os.replace(path, old)
+    os.replace(new, path)
+    if old is not None:
+        remove_tree(old)
+
+
+def remove_tree(path: Path) -> None:
+    """Remove a file or a folder with everything in it; nothing when it is not there."""
     import shutil
 
     if path.is_dir():

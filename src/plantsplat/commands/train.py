@@ -16,7 +16,8 @@ from plantsplat.train.config import TrainConfig
 class TrainCommand:
     """Train a 3DGS model on WS/images, WS/masks and the calibrated poses; resumes an interrupted run.
 
-    Writes WS/train/ (split.json, checkpoint.pt while running, model.pt, config.json) and WS/metrics.json
+    Writes WS/train/ (split.json, model.pt, config.json; trained in WS/.train.partial/, which replaces it whole
+    when complete, so an interrupted or failed run keeps the previous model) and WS/metrics.json
     (PSNR/SSIM/LPIPS on the test views, full frame and foreground only, render FPS, Gaussians, time, memory).
     """
 

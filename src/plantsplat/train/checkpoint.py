@@ -1,7 +1,9 @@
 """Checkpoints and finished models: where they go, writing them atomically, reading them back.
 
-``WS/train/checkpoint.pt`` is written while training runs (an interrupted run resumes from it);
-``WS/train/model.pt`` is the finished model, with its configuration, split and summary.
+A run trains in ``WS/.train.partial/`` (:func:`partial_paths`): ``checkpoint.pt`` is written there while
+training runs (an interrupted run resumes from it), and the finished folder replaces ``WS/train/`` whole, so
+the previous model stays until the new one is complete. ``WS/train/model.pt`` is the finished model, with its
+configuration, split and summary.
 
 Example:
     >>> from plantsplat.workspace import Workspace
@@ -33,6 +35,18 @@ def train_paths(ws: Workspace, cfg: TrainConfig) -> dict[str, Path]:
         "config": tdir / "config.json",
         "metrics": Path(cfg.metrics_path) if cfg.metrics_path else ws.metrics_json,
     }
+
+
+def partial_paths(paths: dict[str, Path]) -> dict[str, Path]:
+    """Where a run writes until it finishes (the keys of :func:`train_paths`): a sibling folder of the train folder,
+    ``WS/.train.partial/``, swapped in whole when the model and its metrics are complete (its metrics as
+    ``metrics.staged.json``, moved to their own path after the swap)."""
+    d = paths["dir"].with_name(f".{paths['dir'].name}.partial")
+    return {"dir": d, "split": d / "split.json", "ckpt": d / "checkpoint.pt", "model": d / "model.pt",
+            "config": d / "config.json", "metrics": d / STAGED_METRICS}
+
+
+STAGED_METRICS = "metrics.staged.json"
 
 
 def model_path(ws: Workspace, train_dir: Path | None = None) -> Path:
@@ -82,7 +96,7 @@ def load_model(ws: Workspace, train_dir: Path | None = None) -> tuple[torch.nn.P
     """The finished model of a workspace: parameters and the checkpoint's ``extra`` (config, split)."""
     p = model_path(ws, train_dir)
     if not p.is_file():
-        ck = p.parent / "checkpoint.pt"
+        ck = p.parent.with_name(f".{p.parent.name}.partial") / "checkpoint.pt"
         hint = " (an unfinished run's checkpoint exists: re-run it to finish)" if ck.is_file() else ""
         raise PlantsplatError(f"{p}: no trained model{hint}; run `plantsplat train {ws.root}` first")
     blob = load_checkpoint(p)

@@ -28,12 +28,14 @@ import torch
 
 import plantsplat
 from plantsplat.errors import PlantsplatError
-from plantsplat.io import write_json_atomic
+from plantsplat.io import os_error_message, remove_tree, replace_dir, write_json_atomic
 from plantsplat.log import get_logger, make_progress
 from plantsplat.train import data as D
 from plantsplat.train.checkpoint import (
+    STAGED_METRICS,
     load_checkpoint,
     params_from_checkpoint,
+    partial_paths,
     save_checkpoint,
     train_paths,
 )
@@ -109,8 +111,9 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
 
     ``resume``: go on from ``train/checkpoint.pt`` of an interrupted run with the same options and
     inputs (:func:`plantsplat.pipeline.train_stage` decides); otherwise training starts afresh.
-    Writes ``train/split.json``, ``train/checkpoint.pt`` (periodically, atomically),
-    ``train/model.pt`` (final), ``train/config.json`` and, with ``cfg.evaluate``, ``metrics.json``.
+    Trains in ``.train.partial/`` (``split.json``, ``checkpoint.pt`` periodically and atomically, ``model.pt``,
+    ``config.json``, ``renders/``), which replaces ``train/`` whole once the model and, with ``cfg.evaluate``,
+    its metrics are complete; then ``metrics.json``. Until then the previous outputs stay as they were.
 
     Usage:
         summary = train_workspace("ws/plant_01", TrainConfig(mode="object"))
@@ -118,21 +121,35 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
     ws = ws if isinstance(ws, Workspace) else Workspace(ws)
     cfg = cfg or TrainConfig()
     rc = cfg.resolved()
-    paths = train_paths(ws, cfg)
+    final = train_paths(ws, cfg)
+    paths = partial_paths(final)  # the previous model stays in final["dir"] until this run is complete
     torch.set_num_threads(cfg.threads or os.cpu_count() or 1)  # torch's ops; numba keeps its own
     note = plantsplat.omp_wait_policy_note()
     if note:
         log.warning("%s", note)
-    if not resume:  # a fresh run: nothing of an earlier one is reused
-        for key in ("ckpt", "model", "split"):
-            paths[key].unlink(missing_ok=True)
+    if not resume:  # a fresh run: nothing of an earlier unfinished one is reused
+        remove_tree(paths["dir"])
     setup = _setup(ws, cfg, rc, paths)
     st = _resume(paths, rc, setup) if resume and paths["ckpt"].is_file() else _initial_state(cfg, rc, setup)
     write_json_atomic(paths["config"], {"requested": _jsonable(asdict(cfg)), "resolved": asdict(rc)})
     t_start, cpu_start = time.perf_counter(), time.process_time()
     loss_ema, psnr_ema = _loop(st, setup, rc, cfg, paths, t_start)
-    return _finish(ws, cfg, rc, paths, setup, st, time.perf_counter() - t_start, time.process_time() - cpu_start,
-                   loss_ema, psnr_ema)
+    summary = _finish(ws, cfg, rc, paths, setup, st, time.perf_counter() - t_start, time.process_time() - cpu_start,
+                      loss_ema, psnr_ema)
+    _publish(paths, final, cfg.evaluate)
+    return summary
+
+
+def _publish(paths: dict, final: dict, metrics: bool) -> None:
+    """Swap the finished run's folder in for the train folder, then its metrics in for ``metrics.json``."""
+    import shutil
+
+    try:
+        replace_dir(paths["dir"], final["dir"])
+        if metrics:
+            shutil.move(final["dir"] / STAGED_METRICS, final["metrics"])
+    except OSError as exc:
+        raise PlantsplatError(os_error_message(exc, final["dir"])) from exc
 
 
 def _setup(ws: Workspace, cfg: TrainConfig, rc: ResolvedConfig, paths: dict) -> _Setup:
