@@ -27,7 +27,9 @@ from plantsplat.errors import PlantsplatError, UsageError
 from plantsplat.frames import FramesConfig
 from plantsplat.io import read_json, write_json_atomic
 from plantsplat.log import get_logger
+from plantsplat.options import check_options
 from plantsplat.poses.estimate import PosesConfig
+from plantsplat.preflight import check_masks_are_ours, check_run
 from plantsplat.resources import StageMeter, machine_info
 from plantsplat.segment.config import SegmentConfig
 from plantsplat.stages import read_record, require_ok, run_stage
@@ -65,6 +67,7 @@ def frames_stage(ws: Workspace, source: Path, cfg: FramesConfig, force: bool = F
     """Frames from a video or image folder (:func:`plantsplat.frames.extract_frames`)."""
     from plantsplat.frames import check_not_inside, extract_frames
 
+    check_options(cfg, "frames")
     check_not_inside(source, ws)
     if ws.image_names() and read_record(ws, "frames") is None and not force:
         raise UsageError(f"{ws.images_dir}: holds images this workspace's frames stage did not write; pass --force to "
@@ -77,6 +80,7 @@ def poses_stage(ws: Workspace, cfg: PosesConfig, force: bool = False) -> dict:
     """Camera poses calibrated with the cube (:func:`plantsplat.poses.estimate_poses`)."""
     from plantsplat.poses import estimate_poses, outputs
 
+    check_options(cfg, "poses")
     require_ok(ws, "frames")
     imports = [p for p in (cfg.import_colmap, cfg.import_transforms) if p is not None]
     return run_stage(ws, "poses", _without(cfg, "colmap_log", "num_threads"), [ws.images_dir, ws.frames_json,
@@ -88,6 +92,8 @@ def segment_stage(ws: Workspace, cfg: SegmentConfig, force: bool = False) -> dic
     """Masks of the plant and the cube (:func:`plantsplat.segment.segment_workspace`)."""
     from plantsplat.segment import outputs, segment_workspace
 
+    check_options(cfg, "segment")
+    check_masks_are_ours(ws)
     require_ok(ws, "poses")
     inputs = [ws.images_dir, ws.poses_json, ws.sparse_dir, ws.transforms_json, ws.markers_json]
     inputs += [cfg.import_masks] if cfg.import_masks is not None else []
@@ -101,6 +107,7 @@ def train_stage(ws: Workspace, cfg: TrainConfig, force: bool = False) -> dict:
     from plantsplat.train import train_workspace
     from plantsplat.train.checkpoint import train_outputs
 
+    check_options(cfg, "train")
     require_ok(ws, "poses")
     require_ok(ws, "segment")
     inputs = [ws.images_dir, ws.masks_dir, ws.segment_json, ws.sparse_dir, ws.transforms_json]
@@ -113,6 +120,7 @@ def export_stage(ws: Workspace, cfg: ExportConfig, force: bool = False) -> dict:
     from plantsplat.train import export_workspace
     from plantsplat.train.checkpoint import model_path
 
+    check_options(cfg, "export")
     require_ok(ws, "train")
     return run_stage(ws, "export", cfg, [model_path(ws, cfg.train_dir)], [ws.splat_ply, ws.points_ply],
                      lambda resume: export_workspace(ws, cfg), force)
@@ -124,6 +132,7 @@ def traits_stage(ws: Workspace, cfg: TraitsConfig, force: bool = False, points: 
     ``points``: measure this PLY instead of the workspace's export."""
     from plantsplat.traits import traits_workspace
 
+    check_options(cfg, "traits")
     if points is None:
         require_ok(ws, "export")
     clouds = [Path(points)] if points is not None else [ws.splat_ply, ws.points_ply]
@@ -203,11 +212,10 @@ def run_pipeline(source: str | Path | None, ws_root: str | Path, cfg: RunConfig,
     ``source``: the video or image folder (None: the workspace already holds its frames). A stage that
     fails stops the run with its error; what the stages before it wrote is kept.
     """
+    check_run(source, ws_root, cfg)  # inputs, option values and the workspace, before any stage runs
     ws = Workspace(ws_root)
     ws.root.mkdir(parents=True, exist_ok=True)
     src = Path(source) if source is not None else None
-    if src is not None and not src.exists():
-        raise PlantsplatError(f"{src}: input not found (a video file or a folder of images)")
     record: dict = {"machine": machine_info(), "stages": {}}
     for name, fn in _plan(src, cfg):
         if name == "frames" and src is None:

@@ -37,21 +37,14 @@ class TraitsCommand:
 
 
 def run(cfg: TraitsCommand) -> int:
-    from plantsplat.errors import EXIT_RESULT_FAILED, UsageError
+    from plantsplat.errors import EXIT_RESULT_FAILED
     from plantsplat.io import read_json
     from plantsplat.log import console
     from plantsplat.pipeline import traits_stage
     from plantsplat.workspace import Workspace
 
     ws = Workspace(cfg.workspace, must_exist=True)
-    s = cfg.settings
-    if not 0 <= s.trim < 0.5:
-        raise UsageError(f"--trim {s.trim}: must be in [0, 0.5)")
-    if s.eps is not None and s.eps <= 0:
-        raise UsageError(f"--eps {s.eps}: must be positive")
-    if s.min_points < 1 or (s.merge_distance_cm is not None and s.merge_distance_cm < 0) or s.cube_size_cm <= 0:
-        raise UsageError("--min-points must be >= 1, --merge-distance-cm >= 0 and --cube-size-cm > 0")
-    traits_stage(ws, s, cfg.force, points=cfg.points, calibrated=cfg.calibrated, figure=cfg.figure)
+    traits_stage(ws, cfg.settings, cfg.force, points=cfg.points, calibrated=cfg.calibrated, figure=cfg.figure)
     out = read_json(ws.traits_json)
     vals = "  ".join(
         f"{k}={out[k]:.2f}" if isinstance(out[k], float) else f"{k}={out[k]}"
