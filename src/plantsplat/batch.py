@@ -28,7 +28,7 @@ from typing import Annotated
 import tyro
 
 from plantsplat.errors import PlantsplatError
-from plantsplat.io import write_json_atomic, write_text_atomic
+from plantsplat.io import csv_cell, write_json_atomic, write_text_atomic
 from plantsplat.log import get_logger
 from plantsplat.pipeline import RunConfig
 from plantsplat.traitdefs import TRAIT_KEYS
@@ -207,7 +207,13 @@ def _run_ray(jobs: list[tuple], address: str, run_cfg: RunConfig, workers: int) 
 
 def run_batch(manifest: str | Path, out: str | Path, opts: BatchConfig) -> dict:
     """Run every plant of ``manifest`` into ``out``; returns the batch summary (also ``out/batch.json``)."""
+    from plantsplat.options import check_run_options
+    from plantsplat.preflight import check_option_paths, check_workspace_folder
+
     out = Path(out)
+    check_workspace_folder(out)
+    check_option_paths(dataclasses.replace(opts.run, ground_truth=opts.ground_truth))
+    check_run_options(opts.run)
     out.mkdir(parents=True, exist_ok=True)
     rows = read_manifest(manifest)
     if opts.ground_truth is not None:
@@ -251,7 +257,8 @@ def run_batch(manifest: str | Path, out: str | Path, opts: BatchConfig) -> dict:
         from plantsplat.groundtruth import read_ground_truth_csv
 
         truth, _ = read_ground_truth_csv(opts.ground_truth)
-    _maybe_batch_report(out, plants, summary.get("accuracy"), truth)
+    if opts.run.report:  # --no-report: neither the plants' reports nor the batch's
+        _maybe_batch_report(out, plants, summary.get("accuracy"), truth)
     return summary
 
 
@@ -262,8 +269,8 @@ def _write_traits_csv(path: Path, plants: list[dict]) -> None:
     for p in plants:
         t = p.get("traits") or {}
         w.writerow(
-            [p["plant_id"], p["status"], *[_fmt(t.get(k)) for k in TRAIT_KEYS], t.get("quality", ""),
-             t.get("scale_source", ""), p.get("error", "")]
+            [csv_cell(p["plant_id"]), p["status"], *[_fmt(t.get(k)) for k in TRAIT_KEYS], t.get("quality", ""),
+             t.get("scale_source", ""), csv_cell(p.get("error", ""))]
         )
     write_text_atomic(path, buf.getvalue())
 

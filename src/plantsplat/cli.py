@@ -6,7 +6,9 @@ traceback is shown only with ``--verbose``.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
+import io
 import pkgutil
 import sys
 from typing import Annotated
@@ -34,6 +36,36 @@ def discover_commands():
     return commands
 
 
+def usage_line(text: str, argv: list[str]) -> str:
+    """tyro's usage error (a box of several paragraphs) said in one line: what is wrong, the option it
+    suggests, and where the help is.
+
+    Example:
+        >>> usage_line("Unrecognized options\\n----\\nUnrecognized options: --nmu\\n----\\nPerhaps you meant:\\n"
+        ...            "    --num INT\\n", ["frames", "--nmu"])
+        'Unrecognized options: --nmu; did you mean --num? (see `plantsplat frames --help`)'
+    """
+    rows = [ln.strip().strip("│╭╮╰╯").strip() for ln in text.splitlines()]
+    paragraphs: list[str] = []  # the text between rules and blank lines, each joined into one line
+    current: list[str] = []
+    for r in rows + [""]:
+        if r and not set(r) <= set("-─ "):
+            current.append(r)
+        elif current:
+            paragraphs.append(" ".join(current))
+            current = []
+    body = paragraphs[1] if len(paragraphs) > 1 else (paragraphs[0] if paragraphs else "invalid arguments")
+    said = [body]
+    for i, par in enumerate(paragraphs):
+        if par.startswith("Perhaps you meant:"):
+            said.append(f"did you mean {(par.split()[3:] or paragraphs[i + 1:i + 2] or ['?'])[0]}?")
+        elif par.startswith("Available subcommands"):
+            said.append(par)
+    command = next((a for a in argv if not a.startswith("-")), None)
+    where = f"plantsplat {command} --help" if command and len(said) == 1 or "did" in said[-1] else "plantsplat --help"
+    return "; ".join(said) + f" (see `{where}`)"
+
+
 def main(argv: list[str] | None = None) -> int:
     import tyro
 
@@ -50,15 +82,23 @@ def main(argv: list[str] | None = None) -> int:
 
     commands = discover_commands()
     by_type = {c.config: c for c in commands}
+    said = io.StringIO()
     try:
-        cfg = tyro.extras.subcommand_cli_from_dict(
-            {c.name: Annotated[c.config, tyro.conf.arg(help=c.help)] for c in commands},
-            args=argv,
-            prog="plantsplat",
-            description=DESCRIPTION,
-        )
+        with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
+            cfg = tyro.extras.subcommand_cli_from_dict(
+                {c.name: Annotated[c.config, tyro.conf.arg(help=c.help)] for c in commands},
+                args=argv,
+                prog="plantsplat",
+                description=DESCRIPTION,
+            )
     except SystemExit as exc:  # --help, or tyro's own usage error (exit 2)
-        return int(exc.code or 0)
+        if not exc.code:
+            sys.stdout.write(said.getvalue())
+            return 0
+        console.print(f"[bold red]error:[/] {usage_line(said.getvalue(), argv)}", markup=True, highlight=False,
+                      soft_wrap=True)
+        return int(exc.code) if isinstance(exc.code, int) else 2
+    sys.stdout.write(said.getvalue())
 
     cmd = by_type[type(cfg)]
     try:

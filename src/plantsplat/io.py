@@ -167,6 +167,19 @@ def read_json(path: str | os.PathLike) -> Any:
         raise PlantsplatError(f"{path}: not valid JSON ({exc}); delete it and re-run the stage that writes it") from exc
 
 
+def csv_cell(value: Any) -> Any:
+    """A CSV cell a spreadsheet shows as text: a string starting with ``= + - @`` (or a tab or carriage return) is
+    a formula to Excel and LibreOffice, so it gets a leading ``'``; numbers and other text stay as they are.
+
+    Example:
+        >>> csv_cell("=1+1"), csv_cell("plant01"), csv_cell(-2.5)
+        ("'=1+1", 'plant01', -2.5)
+    """
+    if isinstance(value, str) and value[:1] in ("=", "+", "-", "@", "\t", "\r"):
+        return "'" + value
+    return value
+
+
 def png_params() -> list[int]:
     """OpenCV ``imwrite`` parameters for fast lossless PNGs: zlib level 1, run-length strategy and the one "sub"
     row filter instead of trying all five per row. A 540x960 RGBA frame: 27 ms against 72 ms with OpenCV's

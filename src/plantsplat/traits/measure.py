@@ -53,6 +53,7 @@ import numpy as np
 from plantsplat import traitdefs
 from plantsplat.cube import CubeSpec
 from plantsplat.errors import PlantsplatError
+from plantsplat.io import csv_cell
 from plantsplat.log import get_logger
 from plantsplat.traits.checks import soil_level
 
@@ -681,7 +682,7 @@ def traits_csv_text(result_json: dict, plant: str) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(cols)
-    w.writerow(["" if x is None else (f"{x:.4f}" if isinstance(x, float) else x) for x in row])
+    w.writerow(["" if x is None else (f"{x:.4f}" if isinstance(x, float) else csv_cell(x)) for x in row])
     return buf.getvalue()
 
 
