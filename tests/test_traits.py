@@ -326,6 +326,27 @@ def test_traits_command_writes_json_csv_png(tmp_path, capsys):
     assert (ws / "traits.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_traits_measure_with_the_cube_the_poses_stage_recorded(tmp_path):
+    """Issue 42 #1: a 20 cm cube (`--poses.cube-size 20 --poses.marker-size 19.2`) is recorded by the poses stage
+    in markers.json; the traits stage finds that cube (not "not a cube", measured as plant) and its checks use it."""
+    from plantsplat.cli import main
+
+    pts, cols, plant = make_plant_scene(seed=8, floaters=False)
+    big = pts * 2.0  # the same scene twice as large: a 20 cm cube beside a plant twice the size
+    ws = tmp_path / "plant_20cm"
+    _write_points_ply(ws / "export" / "points.ply", big, cols, np.full(len(pts), 0.9))
+    (ws / "poses.json").write_text(json.dumps({"scale_source": "aruco"}))
+    (ws / "markers.json").write_text(json.dumps({"cube": {"size": 20.0, "marker_size": 19.2,
+                                                          "dictionary": "DICT_4X4_50", "face_ids": list(range(6))}}))
+    assert main(["traits", str(ws), "--extent-sigma", "0", "--no-figure"]) == 0
+    out = json.loads((ws / "traits.json").read_text())
+    w1, w2 = traitdefs.pca_widths(big[plant])
+    assert out["cube"] is not None and out["scale"]["cube_edge_cm"] == pytest.approx(20.0, rel=0.03)
+    assert _rel(out["width1_cm"], w1) < 0.03 and _rel(out["width2_cm"], w2) < 0.03
+    height_check = next(c for c in out["checks"] if c["name"] == "plant_height_cm")
+    assert height_check["threshold"] == pytest.approx(0.3 * 20.0)
+
+
 def test_traits_command_bad_input_one_line_error(tmp_path, capsys):
     from plantsplat.cli import main
 

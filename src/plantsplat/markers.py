@@ -233,6 +233,24 @@ def write_markers(path: Path, markers: Markers, cube: CubeSpec) -> None:
     })
 
 
+def recorded_cube(path: Path) -> CubeSpec | None:
+    """The cube as the poses stage recorded it in ``markers.json`` (its ``--cube-size``, ``--marker-size``,
+    dictionary and ids), or None when there is no record: the one source of the cube's geometry for the
+    stages and checks after poses."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    c = read_json(path).get("cube")
+    if c is None:
+        return None
+    try:
+        return CubeSpec(size=float(c["size"]), marker_size=float(c["marker_size"]),
+                        dictionary=str(c.get("dictionary", CubeSpec.dictionary)),
+                        face_ids=tuple(int(i) for i in c.get("face_ids", CubeSpec.face_ids)))
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise PlantsplatError(f"{path}: the cube's record is unreadable ({exc}); re-run `plantsplat poses`") from exc
+
+
 def read_markers(path: Path) -> Markers:
     """Read ``markers.json`` (a clear error when it is corrupt)."""
     data = read_json(path)

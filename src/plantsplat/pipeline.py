@@ -136,7 +136,7 @@ def traits_stage(ws: Workspace, cfg: TraitsConfig, force: bool = False, points: 
     if points is None:
         require_ok(ws, "export")
     clouds = [Path(points)] if points is not None else [ws.splat_ply, ws.points_ply]
-    inputs = [*clouds, ws.poses_json, ws.segment_json, ws.metrics_json, ws.transforms_json]
+    inputs = [*clouds, ws.poses_json, ws.markers_json, ws.segment_json, ws.metrics_json, ws.transforms_json]
     config = {**dataclasses.asdict(cfg), "points": str(Path(points).resolve()) if points else None,
               "calibrated": calibrated, "figure": figure}
     return run_stage(ws, "traits", config, inputs, [ws.traits_json, ws.traits_csv],

@@ -71,14 +71,11 @@ def outputs(ws: Workspace) -> list[Path]:
 def calibrated_cube(ws: Workspace):
     """The calibration cube when the poses stage calibrated the model with it (else None)."""
     from plantsplat.cube import CubeSpec
+    from plantsplat.markers import recorded_cube
 
     if not ws.poses_json.is_file() or read_json(ws.poses_json).get("scale_source") != "aruco":
         return None
-    if ws.markers_json.is_file():
-        c = read_json(ws.markers_json).get("cube") or {}
-        return CubeSpec(size=c.get("size", 10.0), marker_size=c.get("marker_size", 9.6),
-                        dictionary=c.get("dictionary", "DICT_4X4_50"), face_ids=tuple(c.get("face_ids", range(6))))
-    return CubeSpec()
+    return recorded_cube(ws.markers_json) or CubeSpec()
 
 
 def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool = False):

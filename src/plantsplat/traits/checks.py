@@ -21,7 +21,7 @@ the crafted test cases give. The soil check comes from the same runs: the three 
 
 Example:
     >>> checks = result_checks({"height_cm": 1.2, "width1_cm": 2.9}, plant_points=142, plant_top_cm=13.0,
-    ...                        camera_top_cm=45.0)
+    ...                        camera_top_cm=45.0, cube_cm=10.0)
     >>> sorted(c.name for c in checks if not c.passed)
     ['plant_height_cm', 'plant_points']
 """
@@ -133,9 +133,10 @@ def stage_checks(ws, t: QualityThresholds = QualityThresholds()) -> list[Check]:
 
 
 def result_checks(traits: dict, plant_points: int, plant_top_cm: float | None, camera_top_cm: float | None,
-                  cube_cm: float = 10.0, t: QualityThresholds = QualityThresholds(),
+                  cube_cm: float, t: QualityThresholds = QualityThresholds(),
                   soil_located: bool | None = None) -> list[Check]:
-    """Checks of the measurement itself (see the module docstring); heights in the calibrated frame (cm).
+    """Checks of the measurement itself (see the module docstring); heights in the calibrated frame (cm);
+    ``cube_cm``: the edge of the cube the poses stage measured with.
     ``soil_located``: whether the height's soil was found (None: no pot, the height is the extent)."""
     out = [Check("plant_points", plant_points, t.plant_points, ">=", "points on the plant after clustering")]
     if soil_located is not None:

@@ -102,8 +102,9 @@ class TraitsConfig:
     trim: float = 0.0005
     """Robust height/widths use the trim .. 1-trim quantiles instead of min .. max (0.0005: the ~0.05 % most
     extreme points on each side are ignored)."""
-    cube_size_cm: float = 10.0
-    """Edge of the calibration cube (cm)."""
+    cube_size_cm: float | None = None
+    """Edge of the calibration cube (cm). Default: the cube the poses stage measured with (its record in
+    markers.json, from --poses.cube-size), else the cube's default (:class:`~plantsplat.cube.CubeSpec`)."""
     scale_tolerance_pct: float = 3.0
     """Flag the result when ArUco and cube-plane scales disagree by more than this (%)."""
     max_tilt_deg: float = 3.0
@@ -535,7 +536,7 @@ def measure_traits(
     from plantsplat.traits.cluster import far_clusters_reason, select_plant
 
     s = settings or TraitsConfig()
-    size = float((cube or CubeSpec()).size) if cube is not None else s.cube_size_cm
+    size = cube_edge_cm(s, cube)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     pts, cols, is_centre, filt = _filter_cloud(points, colors, opacity, scales, centre_mask, s, calibrated)
@@ -572,7 +573,7 @@ def measure_traits(
     elif cube_fit is None:
         return _failed(
             "the cloud is not scaled (no ArUco calibration) and no cube was found in it: cannot give traits in "
-            "cm; make sure the 10 cm cube is in the masks and the reconstruction",
+            f"cm; make sure the {size:g} cm cube is in the masks and the reconstruction",
             s, scale={"source": None}, clusters=clusters_info,
         )
     else:
@@ -671,6 +672,16 @@ def read_splat_extent_cloud(path: str | Path, opacity_min: float, k_sigma: float
             "gaussians": int(keep.sum())}
 
 
+def cube_edge_cm(s: TraitsConfig, cube: CubeSpec | None) -> float:
+    """The cube's edge (cm): ``s.cube_size_cm`` when given, else the recorded ``cube``'s, else the default cube's.
+
+    Example:
+        >>> cube_edge_cm(TraitsConfig(), CubeSpec(size=20.0, marker_size=19.2)), cube_edge_cm(TraitsConfig(), None)
+        (20.0, 10.0)
+    """
+    return float(s.cube_size_cm) if s.cube_size_cm is not None else float((cube or CubeSpec()).size)
+
+
 def traits_csv_text(result_json: dict, plant: str) -> str:
     """One header line and one row: plant, the six traits, robust height/widths, scale, quality."""
     cols = ["plant", *traitdefs.TRAIT_KEYS, *(f"robust_{k}" for k in ROBUST_KEYS), "scale_source",
@@ -718,6 +729,7 @@ def traits_workspace(ws, cfg=None, *, points_path: str | Path | None = None, cal
         out["height_cm"], out["quality"]
     """
     from plantsplat.io import read_json, write_json_atomic, write_text_atomic
+    from plantsplat.markers import recorded_cube
     from plantsplat.ply import is_splat, read_point_cloud
     from plantsplat.workspace import Workspace
 
@@ -755,15 +767,16 @@ def traits_workspace(ws, cfg=None, *, points_path: str | Path | None = None, cal
     log.info("traits: %s (%d points, %s)", ply, len(data["xyz"]), "calibrated cm" if calibrated else "unscaled")
     cams = _camera_centres(ws)
     soil_z, soil_source, soil_disc = soil_level(ws, calibrated)
+    cube = recorded_cube(ws.markers_json)  # the cube the poses stage measured with
     res = measure_traits(data["xyz"], data["rgb"], calibrated=calibrated, opacity=data["opacity"],
                          scales=data["scales"], camera_centres=None if calibrated else cams, settings=s,
-                         centre_mask=data.get("centre"), soil_z=soil_z, soil_disc=soil_disc)
+                         centre_mask=data.get("centre"), soil_z=soil_z, soil_disc=soil_disc, cube=cube)
     out = res.to_json()
     out["input"] = str(ply)
     out["soil_source"] = soil_source
     out["scale"]["calibrated_input"] = bool(calibrated)
     rim_only = soil_disc is not None and res.soil_z == soil_z  # the soil unseen, and nothing of the plant below the rim
-    _judge(out, res, ws, cams if calibrated else None, None if soil_z is None else not rim_only)
+    _judge(out, res, ws, cams if calibrated else None, None if soil_z is None else not rim_only, cube_edge_cm(s, cube))
     write_json_atomic(ws.traits_json, out)
     write_text_atomic(ws.traits_csv, traits_csv_text(out, ws.root.name))
     if figure and res.plant_points is not None:
@@ -779,7 +792,8 @@ def traits_workspace(ws, cfg=None, *, points_path: str | Path | None = None, cal
     return out
 
 
-def _judge(out: dict, res: TraitResult, ws, cams: np.ndarray | None, soil_located: bool | None) -> None:
+def _judge(out: dict, res: TraitResult, ws, cams: np.ndarray | None, soil_located: bool | None,
+           cube_cm: float) -> None:
     """Every stage's checks and the measurement's own (:mod:`plantsplat.traits.checks`) into ``out``'s ``checks``,
     ``quality`` and ``quality_reasons``."""
     from plantsplat.checks import quality
@@ -789,7 +803,7 @@ def _judge(out: dict, res: TraitResult, ws, cams: np.ndarray | None, soil_locate
     if res.plant_points is not None:
         top = float(res.plant_points[:, 2].max())
         checks += result_checks(res.traits, len(res.plant_points), top if cams is not None else None,
-                                None if cams is None else float(cams[:, 2].max()), soil_located=soil_located)
+                                None if cams is None else float(cams[:, 2].max()), cube_cm, soil_located=soil_located)
     out["checks"] = [c.as_dict() for c in checks]
     verdict = quality(checks)
     order = ["ok", "warning", "failed"]
