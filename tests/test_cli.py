@@ -137,3 +137,32 @@ def test_batch_no_report_writes_no_report(tmp_path):
     manifest.write_text("plant_id,input\np1,nowhere.mp4\n")
     main(["batch", str(manifest), "--out", str(tmp_path / "out"), "--no-report"])
     assert (tmp_path / "out" / "traits.csv").is_file() and not (tmp_path / "out" / "report.html").exists()
+
+
+def test_one_process_per_workspace_and_a_stale_lock_is_taken_over(tmp_path, capsys):
+    """Issue 42 #6: while another process works on a workspace, `run` and a stage command are refused with one line
+    naming it (no stage record touched); once that process is dead its lock is taken over."""
+    import subprocess
+    import sys
+
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    video = tmp_path / "video.mp4"
+    video.write_bytes(b"\0" * 64)
+    hold = "import sys, time\nfrom plantsplat.lock import workspace_lock\nwith workspace_lock(sys.argv[1]):\n" \
+           "    print('held', flush=True)\n    time.sleep(120)\n"
+    other = subprocess.Popen([sys.executable, "-c", hold, str(ws)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert other.stdout.readline().strip() == "held"
+        for args in (["run", str(video), "--out", str(ws)], ["export", str(ws)]):
+            assert main(args) == 1
+            _one_error_line(capsys.readouterr().err, f"in use by process {other.pid}")
+        assert not (ws / ".plantsplat" / "stages").exists()
+    finally:
+        other.kill()  # SIGKILL: no clean-up, the lock file stays behind
+        other.wait()
+    assert (ws / ".plantsplat" / "lock").is_file()
+    assert main(["export", str(ws)]) == 1  # runs (and fails: nothing trained), no longer refused
+    err = capsys.readouterr().err
+    assert "in use" not in err and "no trained model" in err
+    assert record_path(Workspace(ws), "export").is_file() and not (ws / ".plantsplat" / "lock").exists()

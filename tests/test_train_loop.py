@@ -246,6 +246,43 @@ def test_retraining_keeps_the_finished_model_until_the_new_one_is_complete(synth
     assert not (ws.root / ".train.partial").exists() and not (ws.root / ".train.old").exists()
 
 
+def test_sigterm_takes_the_ctrl_c_path_and_the_run_resumes(synth_capture, tmp_path):
+    """Issue 42 #7: SIGTERM (kill, timeout, a scheduler) to `plantsplat train` ends it like Ctrl-C: exit 143, one line,
+    the stage record left `running` with its checkpoint, the lock released; the same command then resumes."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from plantsplat.pipeline import train_stage
+    from plantsplat.stages import read_record
+
+    ws = synth_workspace(synth_capture(), tmp_path / "ws", every=4)
+    args = ["--iterations", "400", "--max-resolution", "64", "--num-downscales", "0", "--checkpoint-seconds", "0",
+            "--init-points", "500", "--no-evaluate"]
+    proc = subprocess.Popen([sys.executable, "-m", "plantsplat", "train", str(ws.root), *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PLANTSPLAT_NO_PROGRESS": "1"})
+    ckpt = ws.root / ".train.partial" / "checkpoint.pt"
+    deadline = time.monotonic() + 60
+    while not any(p.exists() for p in (ckpt, ws.train_dir / "checkpoint.pt")) and proc.poll() is None \
+            and time.monotonic() < deadline:
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143, (out, err)
+    said = [ln for ln in (out + err).splitlines() if ln.strip() and not ln.startswith(("INFO", " "))]
+    assert said == ["terminated (SIGTERM): finished outputs are kept; re-run the same command to resume"], out + err
+    assert "Traceback" not in err and "Fatal" not in err
+    assert read_record(ws, "train")["status"] == "running" and ckpt.is_file()
+    assert not (ws.root / ".plantsplat" / "lock").exists()
+    cfg = TrainConfig(iterations=400, max_resolution=64, num_downscales=0, checkpoint_seconds=0, init_points=500,
+                      evaluate=False)
+    s = train_stage(ws, cfg)
+    assert s["resumed"] is True and (ws.train_dir / "model.pt").is_file()
+
+
 def test_nan_loss_stops_and_keeps_checkpoint(synth_capture, tmp_path, monkeypatch):
     import torch
 

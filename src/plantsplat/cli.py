@@ -16,6 +16,11 @@ from typing import Annotated
 from plantsplat import __version__
 from plantsplat.errors import PlantsplatError
 
+EXIT_INTERRUPTED = 130
+"""Ctrl-C (128 + SIGINT), as shells report it."""
+EXIT_TERMINATED = 143
+"""SIGTERM (128 + SIGTERM), as shells report it."""
+
 DESCRIPTION = (
     "plantsplat: from a phone video of a potted plant (with a 10 cm ArUco cube) to a clean 3D "
     "Gaussian Splatting model and metric traits. Global flags: --verbose (debug log, tracebacks), "
@@ -101,6 +106,39 @@ def main(argv: list[str] | None = None) -> int:
     sys.stdout.write(said.getvalue())
 
     cmd = by_type[type(cfg)]
+    with sigterm_as_interrupt():
+        return _run_command(cmd, cfg, verbose)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, ``timeout``, a scheduler), raised in the main thread like Ctrl-C's KeyboardInterrupt so that
+    it takes the same path: stage records left ``running`` (resumable), finished outputs kept, one line."""
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt():
+    """Turn SIGTERM into :class:`Terminated` for the block (in the main thread; elsewhere nothing changes)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def terminated(signum, frame):
+        raise Terminated()
+
+    previous = signal.signal(signal.SIGTERM, terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _run_command(cmd, cfg, verbose: bool) -> int:
+    """Run the parsed command; every way it can end becomes an exit code and at most one line."""
+    from plantsplat.log import console
+
     try:
         code = cmd.run(cfg)
     except PlantsplatError as exc:
@@ -108,9 +146,8 @@ def main(argv: list[str] | None = None) -> int:
             console.print_exception()
         console.print(f"[bold red]error:[/] {exc}", markup=True, highlight=False, soft_wrap=True)
         return exc.exit_code
-    except KeyboardInterrupt:
-        console.print("interrupted: finished outputs are kept; re-run the same command to resume")
-        return 130
+    except KeyboardInterrupt as exc:
+        return _interrupted(exc)
     except OSError as exc:  # the disk or the file system, said in words
         from plantsplat.io import os_error_message
 
@@ -119,6 +156,8 @@ def main(argv: list[str] | None = None) -> int:
         console.print(f"[bold red]error:[/] {os_error_message(exc)}", markup=True, highlight=False, soft_wrap=True)
         return 1
     except Exception as exc:  # an unexpected failure: one line, traceback only with --verbose
+        if interrupt_behind(exc) is not None:  # Ctrl-C or SIGTERM that landed inside a C library's callback
+            return _interrupted(interrupt_behind(exc))
         if verbose:
             console.print_exception()
         console.print(
@@ -130,6 +169,26 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 1
     return int(code or 0)
+
+
+def interrupt_behind(exc: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C or SIGTERM behind ``exc``: one raised inside a callback from C (numba, torch) comes out as a
+    ``SystemError`` ("returned a result with an exception set") caused by it."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def _interrupted(exc: KeyboardInterrupt) -> int:
+    from plantsplat.log import console
+
+    what = "terminated (SIGTERM)" if isinstance(exc, Terminated) else "interrupted"
+    console.print(f"{what}: finished outputs are kept; re-run the same command to resume", soft_wrap=True)
+    return EXIT_TERMINATED if isinstance(exc, Terminated) else EXIT_INTERRUPTED
 
 
 def entry() -> None:

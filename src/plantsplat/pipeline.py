@@ -26,6 +26,7 @@ from plantsplat import __version__
 from plantsplat.errors import PlantsplatError, UsageError
 from plantsplat.frames import FramesConfig
 from plantsplat.io import read_json, write_json_atomic
+from plantsplat.lock import workspace_lock
 from plantsplat.log import get_logger
 from plantsplat.options import check_options
 from plantsplat.poses.estimate import PosesConfig
@@ -215,7 +216,12 @@ def run_pipeline(source: str | Path | None, ws_root: str | Path, cfg: RunConfig,
     check_run(source, ws_root, cfg)  # inputs, option values and the workspace, before any stage runs
     ws = Workspace(ws_root)
     ws.root.mkdir(parents=True, exist_ok=True)
-    src = Path(source) if source is not None else None
+    with workspace_lock(ws.root):  # one process at a time on a workspace
+        _run_stages(ws, Path(source) if source is not None else None, cfg, force)
+    return summarize_workspace(ws)
+
+
+def _run_stages(ws: Workspace, src: Path | None, cfg: RunConfig, force: bool) -> None:
     record: dict = {"machine": machine_info(), "stages": {}}
     for name, fn in _plan(src, cfg):
         if name == "frames" and src is None:
@@ -232,7 +238,6 @@ def run_pipeline(source: str | Path | None, ws_root: str | Path, cfg: RunConfig,
         record["stages"][name] = {"seconds": round(meter.seconds, 2), "peak_rss_mb": round(meter.peak_rss_mb, 1),
                                   "result": _scalars(result)}
         _write_run_json(ws, record, cfg, src)
-    return summarize_workspace(ws)
 
 
 def _scalars(result) -> dict:

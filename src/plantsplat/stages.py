@@ -32,6 +32,7 @@ from typing import Any
 
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import write_json_atomic
+from plantsplat.lock import workspace_lock
 from plantsplat.log import get_logger
 from plantsplat.workspace import Workspace
 
@@ -144,8 +145,15 @@ def run_stage(ws: Workspace, stage: str, config: Any, inputs: list[Path], output
     ``work(resume)`` does the stage; ``resume`` is True when the last run of the stage was interrupted with the
     same options and inputs (a stage that keeps checkpoints may go on from them; otherwise it starts afresh).
     Returns the stage's result (the one recorded when it was up to date). A :class:`PlantsplatError`
-    (or an interruption) leaves the record ``failed`` (``running``), and is raised on.
+    (or an interruption) leaves the record ``failed`` (``running``), and is raised on. The workspace's lock
+    (:mod:`plantsplat.lock`) is held throughout: another process working on it is refused.
     """
+    with workspace_lock(ws.root):
+        return _run_locked(ws, stage, config, inputs, outputs, work, force)
+
+
+def _run_locked(ws: Workspace, stage: str, config: Any, inputs: list[Path], outputs: list[Path],
+                work: Callable[[bool], dict], force: bool) -> dict:
     cfg = config_dict(config)
     rec = read_record(ws, stage)
     now_in = fingerprints(ws, inputs)
