@@ -166,3 +166,21 @@ def test_one_process_per_workspace_and_a_stale_lock_is_taken_over(tmp_path, caps
     err = capsys.readouterr().err
     assert "in use" not in err and "no trained model" in err
     assert record_path(Workspace(ws), "export").is_file() and not (ws / ".plantsplat" / "lock").exists()
+
+
+def test_a_damaged_jpeg_is_named_not_printed_raw(tmp_path, capfd):
+    """Issue 42 #12: libjpeg's "Premature end of JPEG file" does not reach the terminal raw: one warning names the
+    image (which is used as far as it could be decoded)."""
+    import cv2
+    import numpy as np
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(10):
+        ok, data = cv2.imencode(".jpg", rng.integers(0, 255, (120, 160, 3), dtype=np.uint8))
+        (photos / f"img_{i:02d}.jpg").write_bytes(data.tobytes()[: len(data) // 2] if i == 4 else data.tobytes())
+    main(["frames", str(photos), "--out", str(tmp_path / "ws"), "--num", "10"])
+    err = capfd.readouterr().err
+    raw = [ln for ln in err.splitlines() if "JPEG" in ln and "img_04.jpg" not in ln and "damaged" not in ln]
+    assert raw == [] and "img_04.jpg:damagedimage(PrematureendofJPEGfile)" in "".join(err.split())  # wrapped

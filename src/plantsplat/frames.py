@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from plantsplat.errors import PlantsplatError, UsageError
-from plantsplat.io import staged_dir, write_image_atomic, write_json_atomic
+from plantsplat.io import imread_quietly, staged_dir, write_image_atomic, write_json_atomic
 from plantsplat.log import get_logger, make_progress
 from plantsplat.workspace import IMAGE_PATTERN, Workspace
 
@@ -333,7 +333,7 @@ def _select_from_folder(folder: Path, num: int, max_size: int) -> tuple[list, di
         task = bar.add_task(f"reading {folder.name}", total=total, info="")
         for i, p in enumerate(files):
             bar.advance(task)
-            bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)  # applies EXIF orientation
+            bgr = imread_quietly(p, cv2.IMREAD_COLOR)  # applies EXIF orientation
             if bgr is None:
                 unreadable.append(p.name)
                 continue

@@ -28,6 +28,9 @@ from typing import Any
 import numpy as np
 
 from plantsplat.errors import PlantsplatError
+from plantsplat.log import get_logger
+
+log = get_logger(__name__)
 
 _UMASK = os.umask(0)
 os.umask(_UMASK)
@@ -211,13 +214,46 @@ def write_image_atomic(path: str | os.PathLike, image: np.ndarray) -> None:
             raise PlantsplatError(f"{path}: could not write image")
 
 
+@contextlib.contextmanager
+def native_stderr_said(said: list[str]) -> Iterator[None]:
+    """Catch what C libraries print on the process's stderr during the block (libjpeg's "Premature end of JPEG
+    file", "Corrupt JPEG data: ...") into ``said``, one line each, instead of letting it reach the terminal raw;
+    the caller says it in words, naming the file."""
+    import sys
+
+    sys.stderr.flush()
+    with tempfile.TemporaryFile(mode="w+b") as sink:
+        saved = os.dup(2)
+        try:
+            os.dup2(sink.fileno(), 2)
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            said.extend(ln.strip() for ln in sink.read().decode(errors="replace").splitlines() if ln.strip())
+
+
+def imread_quietly(path: str | os.PathLike, flag: int) -> np.ndarray | None:
+    """``cv2.imread`` whose decoder complaints (a truncated or damaged JPEG) become one warning naming the file."""
+    import cv2
+
+    said: list[str] = []
+    with native_stderr_said(said):
+        img = cv2.imread(str(path), flag)
+    if said:
+        log.warning("%s: damaged image (%s); it is used as far as it could be decoded", path,
+                                     "; ".join(dict.fromkeys(said)))
+    return img
+
+
 def read_image(path: str | os.PathLike, mode: str = "rgb") -> np.ndarray:
     """Read an image as uint8 RGB (``mode='rgb'``), RGBA (``'rgba'``) or single channel (``'gray'``)."""
     import cv2
 
     path = Path(path)
     flag = {"rgb": cv2.IMREAD_COLOR, "rgba": cv2.IMREAD_UNCHANGED, "gray": cv2.IMREAD_GRAYSCALE}[mode]
-    img = cv2.imread(str(path), flag)
+    img = imread_quietly(path, flag)
     if img is None:
         raise PlantsplatError(f"{path}: unreadable or not an image; replace or delete it")
     if mode == "rgb":
