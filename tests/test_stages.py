@@ -95,3 +95,53 @@ def test_no_record_is_left_to_the_stage_own_checks(ws):
     calls = []
     _stage(ws, calls)  # an unreadable record means: run again
     assert calls == [False]
+
+
+def test_a_full_disk_names_the_write_that_failed_and_the_stage_resumes(ws, monkeypatch):
+    """Issue 42 #11: when the disk fills up during a stage, the error names the stage's file whose write failed (not
+    the record or run.json, whose writes then fail too); the record left `running` is taken as interrupted."""
+    import errno
+    import tempfile
+
+    from plantsplat.io import os_error_message
+
+    real_mkstemp = tempfile.mkstemp
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    def fill_the_disk():
+        monkeypatch.setattr(tempfile, "mkstemp", full)
+        raise PlantsplatError(os_error_message(OSError(errno.ENOSPC, "No space left"), ws.root / "train" / "model.pt"))
+
+    calls = []
+
+    def work(resume):
+        calls.append(resume)
+        fill_the_disk()
+
+    with pytest.raises(PlantsplatError, match=r"train/model.pt: the disk is full"):
+        run_stage(ws, "copy", {"a": 1}, [ws.root / "in.txt"], [ws.root / "out.txt"], work)
+    assert read_record(ws, "copy")["status"] == "running"
+    monkeypatch.setattr(tempfile, "mkstemp", real_mkstemp)  # space freed
+    _stage(ws, calls)
+    assert calls == [False, True] and read_record(ws, "copy")["status"] == "ok"
+
+
+def test_a_full_disk_during_run_names_the_stage_file_not_run_json(tmp_path, monkeypatch):
+    import errno
+    import tempfile
+
+    from plantsplat import pipeline
+    from plantsplat.io import os_error_message
+
+    video = tmp_path / "video.mp4"
+    video.write_bytes(b"\0" * 64)
+
+    def frames_fill_the_disk(ws, source, cfg, force=False):
+        monkeypatch.setattr(tempfile, "mkstemp", lambda *a, **k: (_ for _ in ()).throw(OSError(errno.ENOSPC, "full")))
+        raise PlantsplatError(os_error_message(OSError(errno.ENOSPC, "full"), ws.images_dir / "frame_00003.png"))
+
+    monkeypatch.setattr(pipeline, "frames_stage", frames_fill_the_disk)
+    with pytest.raises(PlantsplatError, match=r"frame_00003.png: the disk is full"):
+        pipeline.run_pipeline(video, tmp_path / "ws", pipeline.RunConfig(report=False))

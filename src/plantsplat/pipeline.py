@@ -233,7 +233,10 @@ def _run_stages(ws: Workspace, src: Path | None, cfg: RunConfig, force: bool) ->
             except PlantsplatError as exc:
                 record["stages"][name] = {"failed": str(exc)}
                 record["failed_stage"] = name
-                _write_run_json(ws, record, cfg, src)
+                try:
+                    _write_run_json(ws, record, cfg, src)
+                except PlantsplatError as also:  # a full disk: the stage's error names the write that failed
+                    log.warning("could not update %s: %s", ws.run_json, also)
                 raise
         record["stages"][name] = {"seconds": round(meter.seconds, 2), "peak_rss_mb": round(meter.peak_rss_mb, 1),
                                   "result": _scalars(result)}

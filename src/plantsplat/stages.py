@@ -170,7 +170,11 @@ def _run_locked(ws: Workspace, stage: str, config: Any, inputs: list[Path], outp
     try:
         result = work(resume)
     except PlantsplatError as exc:
-        _write(ws, stage, status="failed", reason=str(exc), config=cfg, inputs=now_in)
+        try:
+            _write(ws, stage, status="failed", reason=str(exc), config=cfg, inputs=now_in)
+        except PlantsplatError as also:  # a full disk fails this write too: the stage's own error is the one to say
+            log.warning("[%s] could not record the failure (%s); the record says running, so the next run redoes "
+                        "the stage", stage, also)
         raise
     _write(ws, stage, status="ok", config=cfg, inputs=fingerprints(ws, inputs), outputs=fingerprints(ws, outputs),
            result=_jsonable(result))
