@@ -215,3 +215,26 @@ def test_cli_frames(tmp_path, capsys):
     assert main(["frames", str(tmp_path / "missing.mp4"), "--out", str(tmp_path / "ws2")]) == 1
     err = capsys.readouterr().err
     assert "missing.mp4" in err and "Traceback" not in err
+
+
+def test_a_video_with_overwritten_bytes_is_the_videos_fault(synth_capture, tmp_path, capfd):
+    """Issue 42 #4: an mp4 whose middle was overwritten decodes without an exception into concealed garbage frames;
+    the frames stage refuses it (exit 1, one line) as the video's fault, and no decoder message reaches the terminal
+    raw. The intact video passes."""
+    from plantsplat.cli import main
+
+    video = synth_capture() / "video.mp4"
+    data = bytearray(video.read_bytes())
+    rng = np.random.default_rng(0)
+    for frac in (0.3, 0.5, 0.7):
+        at = int(len(data) * frac)
+        data[at:at + 300] = rng.integers(0, 256, 300, dtype=np.uint8).tobytes()
+    bad = tmp_path / "bad.mp4"
+    bad.write_bytes(bytes(data))
+    capfd.readouterr()
+    assert main(["frames", str(bad), "--out", str(tmp_path / "ws"), "--num", "36"]) == 1
+    err = capfd.readouterr().err
+    assert "the video is damaged" in err and "decoder reported errors" in err and "slowly" not in err
+    assert not any(ln.startswith(("error while decoding", "left block")) for ln in err.splitlines())
+    assert not (tmp_path / "ws" / "images").exists()
+    assert main(["frames", str(video), "--out", str(tmp_path / "ws2"), "--num", "36"]) == 0

@@ -230,6 +230,29 @@ def _count_video_frames(path: Path) -> int:
         container.close()
 
 
+def _small_gray(frame, size: tuple[int, int], rotation: int):
+    """The frame's luma at half the working ``size`` (sharpness is measured there: cheap, blur still shows), in the
+    frame's own orientation (before ``rotation``)."""
+    import cv2
+
+    sw, sh = max(8, size[0] // 2), max(8, size[1] // 2)
+    dsize = (sh, sw) if rotation in (90, 270) else (sw, sh)
+    return cv2.resize(_luma(frame), dsize, interpolation=cv2.INTER_AREA)
+
+
+def check_decoded(path: Path, said: list, damaged: list[int], decoded: int) -> None:
+    """Refuse a video whose decoder reported errors within its frames (overwritten or damaged bytes: FFmpeg conceals
+    them with grey and smeared blocks, which no later stage could tell from the scene). Errors only after the last
+    frame are a truncated end, which the caller reports as such."""
+    inside = sorted({i for i in damaged if i < decoded - 1})
+    if inside:
+        first = str(said[damaged.index(inside[0])][2]).strip()
+        raise PlantsplatError(
+            f"{path}: the video is damaged: the decoder reported errors in {len(inside)} frame(s) from frame "
+            f"{inside[0]} on ({first}); its frames would be garbage, so this is the file's fault, not the filming: "
+            "copy it from the phone again or re-export it")
+
+
 def _select_from_video(path: Path, num: int, max_size: int) -> tuple[list, dict]:
     import av
     import cv2
@@ -262,10 +285,15 @@ def _select_from_video(path: Path, num: int, max_size: int) -> tuple[list, dict]
             rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
         return rgb
 
+    level = av.logging.get_level()
+    av.logging.set_level(av.logging.ERROR)  # the decoder's errors (damaged data) are counted, never printed raw
+    damaged: list[int] = []  # frames during whose decoding the decoder reported an error
     try:
-        with make_progress() as bar:
+        with make_progress() as bar, av.logging.Capture(local=False) as said:
             task = bar.add_task(f"decoding {path.name}", total=total, info="")
             for frame in container.decode(stream):
+                if len(said) > len(damaged):
+                    damaged += [decoded] * (len(said) - len(damaged))
                 if info["rotation"] is None:
                     rot = frame.rotation or meta_rotate
                     info["rotation"] = int(round(rot / 90.0)) * 90 % 360
@@ -273,14 +301,7 @@ def _select_from_video(path: Path, num: int, max_size: int) -> tuple[list, dict]
                     if info["rotation"] in (90, 270):
                         w0, h0 = h0, w0
                     sel = _Selector(total, n_take, working_size(w0, h0, max_size))
-                gray = _luma(frame)
-                w, h = sel.size  # sharpness is measured at half the working size (cheap, blur still shows)
-                sw, sh = max(8, w // 2), max(8, h // 2)
-                if info["rotation"] in (90, 270):
-                    small = cv2.resize(gray, (sh, sw), interpolation=cv2.INTER_AREA)
-                else:
-                    small = cv2.resize(gray, (sw, sh), interpolation=cv2.INTER_AREA)
-                sel.push(decoded, small, frame, finish)
+                sel.push(decoded, _small_gray(frame, sel.size, info["rotation"]), frame, finish)
                 decoded += 1
                 bar.advance(task)
     except av.error.FFmpegError as exc:
@@ -289,6 +310,8 @@ def _select_from_video(path: Path, num: int, max_size: int) -> tuple[list, dict]
         log.warning("%s: decoding stopped after %d of %d frames (%s); using what was decoded", path, decoded, total, exc)
     finally:
         container.close()
+        av.logging.set_level(level)
+    check_decoded(path, said, damaged, decoded)
     if decoded == 0 or sel is None:
         raise PlantsplatError(f"{path}: no frame could be decoded; re-export the video as H.264 mp4")
     if decoded < total:
