@@ -319,6 +319,34 @@ def test_a_stretch_posed_as_a_block_elsewhere_is_found(ring_change):
     assert off_path_runs(bad, names, list(steps), limit) == names[10:13]
 
 
+@pytest.mark.parametrize("ring_change", [False, True])
+def test_a_long_stretch_posed_across_the_orbit_is_found(ring_change):
+    """Eight consecutive frames placed as a block on the far side of the orbit, still looking at the plant (a
+    mirrored piece of the model): no frame of them faces away or leaves the path of its block neighbours; a check
+    of stretches up to a tenth of the frames finds them, and only them."""
+    from scipy.spatial.transform import Rotation
+
+    from plantsplat.poses.checks import facing_away, off_path, off_path_runs
+    from plantsplat.poses.estimate import PosesConfig
+
+    cfg = PosesConfig()
+    steps = np.cumsum([0] + [1 + (i % 2) for i in range(79)]).astype(float)
+    gt = video_orbit(steps, ring_change)
+    names = sorted(gt)
+    longest = max(4, round(cfg.max_off_path_block * len(names)))
+    assert off_path_runs(gt, names, list(steps), cfg.max_path_deviation, max_run=longest) == []
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler("z", 160, degrees=True).as_matrix()
+    about = np.eye(4)
+    about[:3, 3] = [15.0, 0.0, 8.0]  # the plant the cameras circle
+    bad = dict(gt)
+    for n in names[20:28]:
+        bad[n] = about @ turn @ np.linalg.inv(about) @ gt[n]
+    assert facing_away(bad) == [] and not set(names[20:28]) & set(off_path(bad, names, list(steps), cfg.max_path_deviation))
+    assert off_path_runs(bad, names, list(steps), cfg.max_path_deviation) == []  # longer than the short runs
+    assert off_path_runs(bad, names, list(steps), cfg.max_path_deviation, max_run=longest) == names[20:28]
+
+
 def test_a_camera_looking_away_is_found():
     from plantsplat.poses.checks import facing_away
 

@@ -91,13 +91,16 @@ class PosesConfig:
     max_path_deviation: float = 0.3
     """A camera off the path of its video neighbours by more than this share of the step to them (or of twice
     their turn) is left out."""
+    max_off_path_block: float = 0.1
+    """The longest stretch of consecutive frames (share of the frames, at least 4) checked as a block that agrees with
+    itself but was posed somewhere off the path of the frames around it."""
     max_scale_disagreement: float = 0.03
     """Fail when the cube's scale from the two halves of the video differs by more than this share."""
     max_face_offset_cm: float = 0.3
     """Fail when the SfM points on a face of the cube lie farther than this from the face's plane."""
-    cube_size: float = 10.0
+    cube_size: float = CubeSpec.size
     """Cube edge (cm)."""
-    marker_size: float = 9.6
+    marker_size: float = CubeSpec.marker_size
     """Marker side, black border included (cm)."""
     dictionary: str = "DICT_4X4_50"
     """ArUco dictionary of the cube's markers."""
@@ -105,8 +108,11 @@ class PosesConfig:
     """A matched pair whose inliers lie farther than this (median Sampson distance, px) from the epipolar geometry the
     model gives the two frames is contradicted by the model (--mapper auto keeps the model with the fewest)."""
     mapper_keep_share: float = 0.95
-    """With --mapper auto, only models registering at least this share of the most frames any mapper registered
+    """With --mapper auto, only models keeping at least this share of the most frames any mapper keeps on the cameras' path
     compete on consistency."""
+    mapper_switch_sigma: float = 3.0
+    """With --mapper auto, a model other than the incremental mapper's is kept only when the matched pairs the
+    incremental model contradicts and it does not outnumber the reverse by this many standard deviations."""
     num_threads: int = 2
     """CPU threads for COLMAP."""
     seed: int = 0
@@ -225,27 +231,43 @@ def _map(db: Path, vocab: Path | None, names: list[str], ws: Workspace, cfg: Pos
     return rec
 
 
+def _fewer_contradictions(errors: dict, other: dict, max_px: float) -> float:
+    """How many standard deviations fewer matched pairs model ``other`` contradicts than model ``errors`` (McNemar's
+    test on the pairs exactly one of them contradicts; :func:`plantsplat.poses.consistency.pair_errors`)."""
+    from plantsplat.poses.consistency import contradicted
+
+    a, b = set(contradicted(errors, max_px)), set(contradicted(other, max_px))
+    only_a, only_b = len(a - b), len(b - a)
+    return (only_a - only_b) / max(np.sqrt(only_a + only_b), 1.0)
+
+
 def _most_consistent(db: Path, vocab: Path | None, names: list[str], ws: Workspace, cfg: PosesConfig, report: dict):
-    """Each mapper of ``cfg.mapper`` (``auto``: incremental and global); among the models that register nearly as many
-    frames as the best, the one whose matched pairs it contradicts least (:mod:`plantsplat.poses.consistency`)."""
+    """Each mapper of ``cfg.mapper`` (``auto``: incremental, then global). Among the models that keep nearly as many
+    frames on the cameras' path (:func:`off_path_frames`) as the best, the first, unless another contradicts
+    significantly fewer of the matched pairs (:func:`_fewer_contradictions`, :mod:`plantsplat.poses.consistency`)."""
     from plantsplat.poses.consistency import contradiction, pair_errors
 
     mappers = ["incremental", "global"] if cfg.mapper == "auto" else [cfg.mapper]
+    times = video_times(ws, names)
     found = {}
     for m in mappers:
         rec = _map(db, vocab, names, ws, cfg, report, m)
         if rec is not None:
-            found[m] = (rec, contradiction(pair_errors(rec, db), cfg.max_pair_error_px))
+            kept = rec.num_reg_images() - len(off_path_frames(rec, names, times, cfg)) if len(mappers) > 1 else 0
+            found[m] = (rec, pair_errors(rec, db), kept)
     if not found:
         return None
-    most = max(r.num_reg_images() for r, _ in found.values())
-    best = min((m for m, (r, _) in found.items() if r.num_reg_images() >= cfg.mapper_keep_share * most),
-               key=lambda m: found[m][1])
-    report["mappers"] = {m: {"registered": r.num_reg_images(), "contradicted_share": round(c, 4)}
-                         for m, (r, c) in found.items()}
+    most = max(k for _, _, k in found.values())
+    able = [m for m in found if found[m][2] >= cfg.mapper_keep_share * most]
+    z = {m: _fewer_contradictions(found[able[0]][1], found[m][1], cfg.max_pair_error_px) for m in able}
+    best = max(able, key=lambda m: z[m]) if max(z.values()) > cfg.mapper_switch_sigma else able[0]
+    report["mappers"] = {m: {"registered": r.num_reg_images(), "on_path": k,
+                             "fewer_contradicted_sigma": round(z[m], 2) if m in z else None,
+                             "contradicted_share": round(contradiction(e, cfg.max_pair_error_px), 4)}
+                         for m, (r, e, k) in found.items()}
     report["mapper"] = best
     if len(found) > 1:
-        report["events"].append(f"{best} mapping kept: its matches contradict it least")
+        report["events"].append(f"{best} mapping kept" + (": its matches contradict it least" if best != mappers[0] else ""))
     return found[best][0]
 
 
@@ -302,17 +324,24 @@ def _import(ws: Workspace, names: list[str], cfg: PosesConfig, report: dict):
 # --- checks and calibration ---------------------------------------------------------------------
 
 
-def leave_out_off_path(rec, names: list[str], times: list[float], cfg: PosesConfig, report: dict) -> list[str]:
-    """Deregister the frames whose camera looks away from what the cameras circle or leaves the path of its video
-    neighbours; returns their names."""
+def off_path_frames(rec, names: list[str], times: list[float], cfg: PosesConfig) -> list[str]:
+    """The registered frames whose camera looks away from what the cameras circle or leaves the path of its video
+    neighbours, alone or as a block (:mod:`plantsplat.poses.checks`)."""
     from plantsplat.poses.checks import facing_away, off_path, off_path_runs
     from plantsplat.poses.interop import c2w_opencv
 
-    reg = _registered(rec)
-    c2w = {n: c2w_opencv(im) for n, im in reg.items()}
+    c2w = {n: c2w_opencv(im) for n, im in _registered(rec).items()}
     drop = facing_away(c2w)
     drop += off_path({n: M for n, M in c2w.items() if n not in drop}, names, times, cfg.max_path_deviation)
-    drop += off_path_runs({n: M for n, M in c2w.items() if n not in drop}, names, times, cfg.max_path_deviation)
+    drop += off_path_runs({n: M for n, M in c2w.items() if n not in drop}, names, times, cfg.max_path_deviation,
+                          max_run=max(4, round(cfg.max_off_path_block * len(names))))
+    return drop
+
+
+def leave_out_off_path(rec, names: list[str], times: list[float], cfg: PosesConfig, report: dict) -> list[str]:
+    """Deregister the frames :func:`off_path_frames` finds; returns their names."""
+    reg = _registered(rec)
+    drop = off_path_frames(rec, names, times, cfg)
     for n in drop:
         rec.deregister_frame(reg[n].frame_id)
     if drop:
@@ -449,6 +478,7 @@ def _describe(report: dict, rec, cal, cfg: PosesConfig, names: list[str]) -> Non
     if cal is not None:
         report.update(scale_source="aruco", similarity=cal.summary(), up_vector_model=up_vector(cal),
                       marker_residuals_px=cal.frame_residuals_px, units="cm",
+                      cube={"size_cm": cfg.cube_size, "marker_size_cm": cfg.marker_size, "dictionary": cfg.dictionary},
                       world="cube frame: origin at the centre of the cube's bottom face (ground plane), +z up, centimetres")
     else:
         report.update(scale_source="none", units="model units", world="COLMAP model frame (arbitrary scale and orientation)")
