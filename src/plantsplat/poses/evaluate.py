@@ -80,6 +80,19 @@ def transforms_c2w(data: dict) -> dict[str, np.ndarray]:
     }
 
 
+def cube_from_world(ground_truth: dict) -> np.ndarray:
+    """The 4x4 similarity from a capture's true world frame to our cube frame (origin at the centre of the cube's
+    bottom face, z up, cm). ``ground_truth``: a ``plantsplat synth`` ``ground_truth.json`` (``cube.T_world_cube``)
+    or the foreign renders' (``calibration_cube.cube_to_world``, whose origin is the cube's centre)."""
+    if "cube" in ground_truth:
+        world_cube = np.asarray(ground_truth["cube"]["T_world_cube"], dtype=np.float64)
+    else:
+        cube = ground_truth["calibration_cube"]
+        world_cube = np.asarray(cube["cube_to_world"], dtype=np.float64) @ np.array(
+            [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, -cube["edge_cm"] / 2], [0, 0, 0, 1.0]])
+    return np.linalg.inv(world_cube)
+
+
 def reference_cameras(ground_truth: dict, source_index: dict[str, int]) -> dict[str, np.ndarray]:
     """The true cameras of a capture with ground truth, for the workspace frames, in our cube frame.
 
@@ -89,13 +102,7 @@ def reference_cameras(ground_truth: dict, source_index: dict[str, int]) -> dict[
     ``source_index``: each workspace frame's video frame number (``frames.json``). Returns camera-to-world
     4x4 matrices (OpenCV axes, cm) by frame name.
     """
-    if "cube" in ground_truth:
-        world_cube = np.asarray(ground_truth["cube"]["T_world_cube"], dtype=np.float64)
-    else:
-        cube = ground_truth["calibration_cube"]
-        world_cube = np.asarray(cube["cube_to_world"], dtype=np.float64) @ np.array(
-            [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, -cube["edge_cm"] / 2], [0, 0, 0, 1.0]])
-    cube_world = np.linalg.inv(world_cube)
+    cube_world = cube_from_world(ground_truth)
     frames = ground_truth["frames"]
     return {name: cube_world @ np.asarray(frames[i]["c2w"], dtype=np.float64) for name, i in source_index.items()}
 

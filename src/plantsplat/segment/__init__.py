@@ -80,6 +80,7 @@ def calibrated_cube(ws: Workspace):
 
 def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool = False):
     """The ``3d`` backend: ``({name: (plant, cube) bool masks}, per-frame facts, capture facts)``."""
+    from plantsplat.segment.decide import DecideConfig
     from plantsplat.segment.frame import distortion_map, object_prior, refine, to_frame
     from plantsplat.segment.object3d import object_model
     from plantsplat.segment.scene import scene_model
@@ -89,7 +90,7 @@ def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool 
     params, views, points = scene_model(ws, cfg, resume)
     t_model = time.perf_counter() - t0
     obj = object_model(params, views, calibrated_cube(ws), points, min_in_view=cfg.min_in_view,
-                       sfm_reach=cfg.sfm_reach, seed=cfg.seed)
+                       sfm_reach=cfg.sfm_reach, seed=cfg.seed, decide=DecideConfig(enabled=cfg.weigh_evidence))
     save_object(ws, obj)
     by_name = {v.name: v for v in views}
     maps = distortion_map(views[0]) if views else None

@@ -33,6 +33,9 @@ class SegmentConfig:
     """A plant Gaussian lies inside the frames of at least this share of the cameras (the plant is filmed all round)."""
     sfm_reach: float = 0.07
     """A plant Gaussian lies within this share of the cameras' distance from the axis of an SfM point."""
+    weigh_evidence: bool = True
+    """Decide the plant among the Gaussians in its region by their colours and neighbours as well (a minimum cut
+    in 3D, see plantsplat.segment.decide); off: every Gaussian in the region is plant (position alone)."""
     refine_band_px: int = 6
     """Outlines are refined on each frame (GrabCut) within this many pixels of the 3D outline; 0 = not refined."""
     min_plant_fraction: float = 5e-4

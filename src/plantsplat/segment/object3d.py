@@ -32,6 +32,7 @@ import torch
 
 from plantsplat.cube import CubeSpec
 from plantsplat.log import get_logger
+from plantsplat.segment.decide import DecideConfig, decide_plant
 
 log = get_logger(__name__)
 
@@ -296,9 +297,20 @@ def pot_solid(grid: Grid, free: np.ndarray, seen: np.ndarray, axis_xy: np.ndarra
     return ndimage.binary_dilation(np.isin(labels, keep), _ball(r + 1))
 
 
+def _weigh_evidence(params: dict, mu: np.ndarray, candidate: np.ndarray, orbit_radius: float, cfg: DecideConfig):
+    """The candidates' colours and neighbours weighed (:func:`decide_plant`) against every opaque Gaussian that is no
+    candidate."""
+    from plantsplat.train.model import sh_to_rgb
+
+    rgb = sh_to_rgb(params["sh0"][:, 0, :]).clamp(0, 1).numpy().astype(np.float64)
+    opacity = torch.sigmoid(params["opacities"]).numpy().reshape(-1).astype(np.float64)
+    opaque = opacity > cfg.sure_opacity
+    return decide_plant(mu, rgb, opacity, candidate, opaque & ~candidate, orbit_radius, cfg)
+
+
 def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: np.ndarray, reach: float = 0.55,
                  min_in_view: float = 0.85, sfm_reach: float = 0.07, ground_cm: float = 1.0,
-                 pot_margin_cm: float = 1.0, seed: int = 0) -> ObjectModel:
+                 pot_margin_cm: float = 1.0, seed: int = 0, decide: DecideConfig | None = None) -> ObjectModel:
     """Which Gaussians of a whole-scene model are the plant (see the module docstring).
 
     ``params``: the model (``means`` ``[N, 3]`` ...); ``views``: its cameras (``train.data.View``);
@@ -309,7 +321,9 @@ def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: n
     the frames, and within ``sfm_reach`` times the cameras' distance of an SfM point: a blank ceiling
     or wall can be drawn by Gaussians at any depth, and a quick model sometimes hangs a cloud of them
     above the plant, where structure from motion, which needs texture seen from several frames,
-    finds nothing.
+    finds nothing. Within that region, ``decide`` (default :class:`DecideConfig`) weighs each
+    Gaussian's colour and its neighbours (:func:`plantsplat.segment.decide.decide_plant`);
+    ``DecideConfig(enabled=False)`` decides by position alone.
     """
     c2ws = [np.linalg.inv(v.viewmat) for v in views]
     centre = orbit_axis(c2ws)
@@ -338,5 +352,8 @@ def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: n
     plant = np.zeros(len(mu), bool)
     idx = np.flatnonzero(region)
     plant[idx] = in_view_share(mu[idx], views) >= min_in_view
+    decide = decide or DecideConfig()
+    if decide.enabled:
+        plant, info["decision"] = _weigh_evidence(params, mu, plant, cam_radial, decide)
     info["plant_gaussians"] = int(plant.sum())
     return ObjectModel(params=params, plant=plant, cube=cube, axis=centre, up=up, info=info)

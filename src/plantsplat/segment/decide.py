@@ -1,0 +1,170 @@
+"""The plant decided in 3D with all the evidence, not with position alone: where, what colour, what it touches.
+
+:func:`plantsplat.segment.object3d.object_model` gives the region the plant can be in (near the orbit's
+axis, above the ground, in view of nearly every frame, near an SfM point, outside the pot and the
+cube). A quick model can still put things there that are not plant: a patch of a blank wall drawn at
+the wrong depth, a few Gaussians beside the cube. Three more kinds of evidence hold in any room:
+
+- **appearance**, learned per capture from what geometry is sure of: the colours of the plant's
+  body (below) against the colours of the rest of the scene (the far room, the floor, the pot, the
+  cube). Each candidate gets the log-likelihood ratio of its colour under the two
+  (:func:`colour_evidence`);
+- **attachment**: the plant is one body; the largest piece of candidates linked at a few centimetres
+  is it (:func:`body_gaps`). A piece apart from it is less likely plant the farther it is:
+  its prior falls with the square of the gap, measured against the body's size, so a leaf whose
+  petiole the quick model lost or a fruit hanging over the pot's rim stays unless its colour is the
+  room's, while a patch of wall above the plant or a clump by the cube, far from the body, goes;
+- **neighbours**: a Gaussian takes the label of its neighbours in 3D unless their colours differ (a
+  Potts term on the k-nearest-neighbour graph of the candidates, weighted as GrabCut weights
+  neighbouring pixels), so a white flower on a green plant in a white room stays with its plant.
+  The labels are the minimum cut of that graph (:func:`min_cut_labels`, scipy's maximum flow).
+
+Usage:
+    plant, facts = decide_plant(mu, rgb, opacity, candidates, background, orbit_radius)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import breadth_first_order, connected_components, maximum_flow
+from scipy.spatial import cKDTree
+
+
+@dataclass
+class DecideConfig:
+    """Weights of the evidence in the 3D decision (in nats: natural-log probability ratios)."""
+
+    enabled: bool = True
+    """Weigh colour and neighbours; False: the plant is every Gaussian in its region (position alone)."""
+    sure_opacity: float = 0.5
+    """Only Gaussians at least this opaque teach the colour models."""
+    colour_bins: int = 16
+    """Bins per RGB channel of the colour histograms (each smoothed by one bin)."""
+    prior_log_odds: float = 2.0
+    """How much more likely a candidate joined to the plant's body is plant than not, before its colour is seen."""
+    gap_scale: float = 0.5
+    """A piece apart from the body loses ``(gap / (gap_scale * body size))**2`` nats of that prior (a Gaussian prior on
+    the gap; the body's size is its 95th-percentile distance from its middle)."""
+    max_colour_evidence: float = 4.0
+    """The colour's log-likelihood ratio is clipped to this (a colour neither model has seen decides nothing)."""
+    neighbours: int = 8
+    """Neighbours of each candidate in the body graph."""
+    smoothness: float = 1.5
+    """Cost of cutting between two neighbours of the same colour at the typical neighbour distance."""
+    attach_reach: float = 0.07
+    """Candidates within this share of the cameras' distance from the axis of each other are one piece (3 cm on a
+    40 cm orbit); the largest piece is the plant's body."""
+
+
+def colour_histogram(rgb: np.ndarray, weights: np.ndarray, bins: int) -> np.ndarray:
+    """A smoothed, normalised RGB histogram ``[bins, bins, bins]`` of colours ``rgb`` ``[N, 3]`` in [0, 1]."""
+    idx = np.clip((rgb * bins).astype(int), 0, bins - 1)
+    h = np.zeros((bins, bins, bins))
+    np.add.at(h, (idx[:, 0], idx[:, 1], idx[:, 2]), weights)
+    h = gaussian_filter(h, 1.0, mode="constant") + 1e-3 * max(h.sum(), 1.0) / bins ** 3
+    return h / h.sum()
+
+
+def colour_evidence(rgb: np.ndarray, plant_rgb: np.ndarray, plant_w: np.ndarray, room_rgb: np.ndarray,
+                    room_w: np.ndarray, cfg: DecideConfig) -> np.ndarray:
+    """Log-likelihood ratio (plant over the rest) of each colour of ``rgb`` ``[N, 3]`` under histograms of the sure
+    plant and sure rest of the scene (weighted), clipped to ``cfg.max_colour_evidence``. ``[N]``"""
+    hp = colour_histogram(plant_rgb, plant_w, cfg.colour_bins)
+    hr = colour_histogram(room_rgb, room_w, cfg.colour_bins)
+    idx = np.clip((rgb * cfg.colour_bins).astype(int), 0, cfg.colour_bins - 1)
+    llr = np.log(hp[idx[:, 0], idx[:, 1], idx[:, 2]]) - np.log(hr[idx[:, 0], idx[:, 1], idx[:, 2]])
+    return np.clip(llr, -cfg.max_colour_evidence, cfg.max_colour_evidence)
+
+
+def neighbour_graph(mu: np.ndarray, rgb: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The k-nearest-neighbour graph of points ``mu`` ``[N, 3]``: ``(i [E], j [E], weight [E], typical distance)``.
+
+    A weight falls with the colour difference (scaled by its mean, as GrabCut scales pixel differences)
+    and with the distance beyond the typical (median) neighbour distance."""
+    k = min(k, len(mu) - 1)
+    d, nb = cKDTree(mu).query(mu, k=k + 1)
+    i = np.repeat(np.arange(len(mu)), k)
+    j = nb[:, 1:].reshape(-1)
+    dist = d[:, 1:].reshape(-1)
+    typical = float(np.median(dist)) if len(dist) else 1.0
+    dc2 = ((rgb[i] - rgb[j]) ** 2).sum(1)
+    w = np.exp(-dc2 / (2.0 * max(float(dc2.mean()), 1e-9))) * np.exp(-np.maximum(dist / max(typical, 1e-12) - 1.0, 0.0))
+    return i, j, w, typical
+
+
+def min_cut_labels(unary: np.ndarray, i: np.ndarray, j: np.ndarray, w: np.ndarray, scale: float = 1000.0) -> np.ndarray:
+    """Binary labels minimising ``sum(cost of each label) + sum over edges w (labels differ)``. ``[N]`` bool (True: the
+    label ``unary > 0`` favours).
+
+    ``unary`` ``[N]``: how much more the first label is favoured (log odds); edges ``i``, ``j`` with weights ``w``.
+    Solved exactly as a minimum s-t cut (capacities scaled by ``scale`` and rounded to integers for
+    scipy's maximum flow); the first label is the source side."""
+    n = len(unary)
+    s, t = n, n + 1
+    cap_s = np.round(np.maximum(unary, 0.0) * scale).astype(np.int64)  # paid when a node leaves the source side
+    cap_t = np.round(np.maximum(-unary, 0.0) * scale).astype(np.int64)
+    cw = np.round(w * scale).astype(np.int64)
+    rows = np.concatenate([np.full(n, s), np.arange(n), i, j])
+    cols = np.concatenate([np.arange(n), np.full(n, t), j, i])
+    caps = np.concatenate([cap_s, cap_t, cw, cw])
+    graph = csr_matrix((caps, (rows, cols)), shape=(n + 2, n + 2))  # duplicate edges add up
+    graph.sum_duplicates()
+    graph.data = graph.data.astype(np.int32)
+    flow = maximum_flow(graph, s, t).flow
+    residual = (graph - flow).tocsr()
+    residual.data[residual.data < 0] = 0
+    residual.eliminate_zeros()
+    reach = breadth_first_order(residual, s, directed=True, return_predecessors=False)
+    side = np.zeros(n + 2, bool)
+    side[reach] = True
+    return side[:n]
+
+
+def body_gaps(mu: np.ndarray, link: float) -> tuple[np.ndarray, float]:
+    """How far each of the points ``mu`` ``[N, 3]`` lies from the plant's body, through the piece it belongs to:
+    ``(gap [N], body size)``. Points within ``link`` of each other form a piece; the largest piece is the body
+    (gap 0); another piece's gap is its shortest distance to the body. The body's size is the 95th percentile of
+    its points' distances from their median."""
+    pairs = cKDTree(mu).query_pairs(link, output_type="ndarray")
+    graph = csr_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(mu), len(mu)))
+    _, label = connected_components(graph, directed=False)
+    body = label == np.argmax(np.bincount(label))
+    size = float(np.percentile(np.linalg.norm(mu[body] - np.median(mu[body], axis=0), axis=1), 95))
+    d = cKDTree(mu[body]).query(mu)[0]
+    gap = np.zeros(len(mu))
+    for piece in np.unique(label[~body]):
+        m = label == piece
+        gap[m] = d[m].min()
+    return gap, size
+
+
+def decide_plant(mu: np.ndarray, rgb: np.ndarray, weight: np.ndarray, candidate: np.ndarray,
+                 rest: np.ndarray, orbit_radius: float, cfg: DecideConfig | None = None) -> tuple[np.ndarray, dict]:
+    """The plant among the ``candidate`` Gaussians (``[N]`` bool): ``(plant [N] bool, facts)``.
+
+    ``mu`` ``[N, 3]`` centres; ``rgb`` ``[N, 3]`` base colours in [0, 1]; ``weight`` ``[N]`` how much each counts in
+    the colour models (its opacity); ``rest``: Gaussians surely not plant (the far room, the floor, the pot, the
+    cube); ``orbit_radius``: the cameras' distance from the axis (model units). The plant's colours are learned
+    from its body (:func:`body_gaps`), the rest's from ``rest``."""
+    cfg = cfg or DecideConfig()
+    idx = np.flatnonzero(candidate)
+    plant = np.zeros(len(mu), bool)
+    if len(idx) <= cfg.neighbours or not rest.any():
+        plant[idx] = True
+        return plant, {"decided_by": "position (too little to learn colours from)"}
+    i, j, w, typical = neighbour_graph(mu[idx], rgb[idx], cfg.neighbours)
+    gap, size = body_gaps(mu[idx], cfg.attach_reach * orbit_radius)
+    body = idx[gap == 0]
+    llr = colour_evidence(rgb[idx], rgb[body], weight[body], rgb[rest], weight[rest], cfg)
+    prior = cfg.prior_log_odds - (gap / max(cfg.gap_scale * size, 1e-12)) ** 2
+    keep = min_cut_labels(prior + llr, i, j, cfg.smoothness * w)
+    plant[idx[keep]] = True
+    facts = {"decided_by": "position, colour and neighbours", "candidates": int(len(idx)),
+             "apart_from_body": int((gap > 0).sum()), "dropped": int((~keep).sum()),
+             "dropped_apart": int((~keep & (gap > 0)).sum()), "neighbour_cm": round(typical, 3),
+             "body_size": round(size, 2)}
+    return plant, facts

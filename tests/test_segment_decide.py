@@ -1,0 +1,95 @@
+"""The 3D decision of the plant: minimum cut against brute force, and constructed scenes (no rendering)."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from plantsplat.segment.decide import DecideConfig, body_gaps, decide_plant, min_cut_labels
+
+
+def _energy(labels: np.ndarray, unary: np.ndarray, i: np.ndarray, j: np.ndarray, w: np.ndarray) -> float:
+    """The cut's cost written out: a node off its favoured side pays |unary|; a cut edge pays its weight."""
+    cost = np.where(labels, np.maximum(-unary, 0), np.maximum(unary, 0)).sum()
+    return float(cost + w[labels[i] != labels[j]].sum())
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_min_cut_matches_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    n = 9
+    unary = rng.normal(0, 1.5, n)
+    i, j = np.array(list(itertools.combinations(range(n), 2))).T
+    pick = rng.random(len(i)) < 0.4
+    i, j, w = i[pick], j[pick], rng.uniform(0, 2, pick.sum())
+    got = min_cut_labels(unary, i, j, w)
+    best = min(_energy(np.array(b, bool), unary, i, j, w) for b in itertools.product([0, 1], repeat=n))
+    assert _energy(got, unary, i, j, w) == pytest.approx(best, abs=0.02)  # capacities rounded to 1/1000
+
+
+def test_smoothness_carries_an_undecided_node_with_its_neighbours():
+    unary = np.array([3.0, 3.0, -0.2, 3.0])  # node 2 leans to "not" a little; its neighbours are sure
+    i, j = np.array([0, 1, 2]), np.array([2, 2, 3])
+    assert min_cut_labels(unary, i, j, np.full(3, 1.0)).all()
+    assert min_cut_labels(unary, i, j, np.zeros(3)).tolist() == [True, True, False, True]
+
+
+def _scene(rng):
+    """A green plant (stem and a disc of leaves) above a pot, a grey wall patch hung above it, a green piece 25 cm
+    away, white flowers on the leaves, and the white room and brown pot around. Returns ``(mu, rgb, weight,
+    candidate, rest, truth)``."""
+    stem = np.c_[rng.normal(0, 0.2, (300, 2)), rng.uniform(15, 25, 300)]
+    a, r = rng.uniform(0, 2 * np.pi, 1500), np.sqrt(rng.uniform(0, 1, 1500)) * 12
+    leaves = np.c_[r * np.cos(a), r * np.sin(a), 25 + rng.normal(0, 0.5, 1500)]
+    flowers = np.concatenate([rng.normal(0, 0.6, (30, 3)) + [x, y, 26.5] for x, y in ((6, 2), (-5, 5), (1, -8))])
+    patch = np.c_[rng.uniform(-4, 4, (400, 2)), 36 + rng.normal(0, 0.2, 400)]  # wall-coloured, hung above
+    stray = np.c_[rng.normal(25, 0.4, (40, 2)), rng.normal(3, 0.4, 40)]  # green, by the cube, apart from the body
+    room = np.c_[rng.uniform(-150, 150, (3000, 2)), rng.uniform(0, 200, 3000)]
+    pot = np.c_[rng.normal(0, 8, (600, 2)), rng.uniform(0, 14, 600)]
+    def colour(n, mean, sd):
+        return np.clip(rng.normal(mean, sd, (n, 3)), 0, 1)
+
+    def green(n):
+        return colour(n, [0.25, 0.55, 0.2], 0.05)
+
+    def grey(n):
+        return np.clip(rng.normal(0.72, 0.04, (n, 1)) + rng.normal(0, 0.01, (n, 3)), 0, 1)
+
+    def brown(n):
+        return colour(n, [0.45, 0.3, 0.2], 0.04)
+
+    mu = np.concatenate([stem, leaves, flowers, patch, stray, room, pot])
+    rgb = np.concatenate([green(300), green(1500), grey(90) + 0.2, grey(400), green(40), grey(3000), brown(600)])
+    kind = np.repeat([0, 0, 0, 1, 2, 3, 4], [300, 1500, 90, 400, 40, 3000, 600])
+    candidate = kind <= 2
+    return mu, np.clip(rgb, 0, 1), np.ones(len(mu)), candidate, ~candidate, kind == 0
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_wall_patch_and_a_piece_by_the_cube_are_not_plant_and_white_flowers_are(seed):
+    mu, rgb, weight, candidate, rest, truth = _scene(np.random.default_rng(seed))
+    plant, facts = decide_plant(mu, rgb, weight, candidate, rest, 45.0)
+    assert plant[truth].mean() > 0.99 and not plant[candidate & ~truth].any(), facts
+    assert plant[1800:1890].all()  # the white flowers, the colour of the room, stay with their leaves
+    position, _ = decide_plant(mu, rgb, weight, candidate, rest, 45.0, DecideConfig(enabled=True, max_colour_evidence=0.0,
+                                                                              gap_scale=1e9))
+    assert position[candidate].all()  # without colour and attachment every candidate is plant
+
+
+def test_body_gaps_measure_pieces_from_the_largest():
+    rng = np.random.default_rng(1)
+    body = rng.normal(0, 3, (2000, 3))
+    leaf = rng.normal(0, 0.3, (200, 3)) + [14, 0, 0]  # a leaf whose petiole the model lost
+    speck = rng.normal(0, 0.3, (10, 3)) + [0, 30, 0]
+    gap, size = body_gaps(np.concatenate([body, leaf, speck]), 2.0)
+    assert (gap[:2000] == 0).mean() > 0.97 and 3 < gap[2000:2200].min() < 8 < 20 < gap[2200:].min()
+    assert 5 < size < 12
+
+
+def test_too_little_evidence_keeps_the_candidates():
+    mu = np.random.default_rng(2).normal(0, 1, (50, 3))
+    cand = np.ones(50, bool)
+    plant, facts = decide_plant(mu, np.full((50, 3), 0.5), np.ones(50), cand, np.zeros(50, bool), 45.0)
+    assert plant.all() and "position" in facts["decided_by"]
