@@ -314,12 +314,13 @@ def test_traits_command_writes_json_csv_png(tmp_path, capsys):
     _write_points_ply(ws / "export" / "points.ply", np.concatenate([pts, junk]),
                       np.concatenate([cols, np.full((300, 3), 9, np.uint8)]),
                       np.r_[np.full(len(pts), 0.9), np.full(300, 0.02)])
-    (ws / "poses.json").write_text(json.dumps({"scale_source": "aruco"}))
+    (ws / "poses.json").write_text(json.dumps({"scale_source": "aruco", "scale_uncertainty": {"relative_se": 0.0021}}))
     assert main(["traits", str(ws)]) == 0
     out = json.loads((ws / "traits.json").read_text())
     for k in traitdefs.TRAIT_KEYS:
         assert k in out
     assert out["quality"] == "ok" and out["scale_source"] == "aruco"
+    assert out["scale"]["standard_error_pct"] == pytest.approx(0.21)  # the poses stage's, carried
     assert _rel(out["height_cm"], traitdefs.plant_height(pts[plant])) < 0.01
     lines = (ws / "traits.csv").read_text().strip().splitlines()
     assert len(lines) == 2 and lines[0].startswith("plant,height_cm")

@@ -775,6 +775,9 @@ def traits_workspace(ws, cfg=None, *, points_path: str | Path | None = None, cal
     out["input"] = str(ply)
     out["soil_source"] = soil_source
     out["scale"]["calibrated_input"] = bool(calibrated)
+    if calibrated and ws.poses_json.is_file():
+        se = (read_json(ws.poses_json).get("scale_uncertainty") or {}).get("relative_se")
+        out["scale"]["standard_error_pct"] = None if se is None else round(100.0 * se, 3)  # the cube's, from poses
     rim_only = soil_disc is not None and res.soil_z == soil_z  # the soil unseen, and nothing of the plant below the rim
     _judge(out, res, ws, cams if calibrated else None, None if soil_z is None else not rim_only, cube_edge_cm(s, cube))
     write_json_atomic(ws.traits_json, out)
