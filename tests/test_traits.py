@@ -592,3 +592,19 @@ def test_a_tiny_cloud_fails_its_checks(tmp_path):
     assert out["quality"] == "failed"
     failed = {c["name"] for c in out["checks"] if not c["passed"]}
     assert {"plant_points", "plant_height_cm"} <= failed
+
+
+def test_a_capture_the_poses_stage_warned_about_is_at_least_a_warning(tmp_path):
+    """poses.json's warnings (e.g. frames left out) reach the traits' verdict: not `ok`, and the reason is given."""
+    from plantsplat.cli import main
+
+    pts, cols, _ = make_plant_scene(seed=8)
+    ws = tmp_path / "plant_02"
+    _write_points_ply(ws / "export" / "points.ply", pts, cols, np.full(len(pts), 0.9))
+    left_out = {"name": "registered_share_all", "value": 0.9, "threshold": 0.95, "op": ">=", "passed": False,
+                "severity": "warn", "detail": "12 frame(s) left out; the later stages use the 108 others"}
+    (ws / "poses.json").write_text(json.dumps({"scale_source": "aruco", "status": "warning", "checks": [left_out]}))
+    assert main(["traits", str(ws)]) == 0
+    out = json.loads((ws / "traits.json").read_text())
+    assert out["quality"] == "warning"
+    assert any("12 frame(s) left out" in r for r in out["quality_reasons"]), out["quality_reasons"]

@@ -108,8 +108,14 @@ def _pot_from_sfm(ws):
 
 
 def stage_checks(ws, t: QualityThresholds = QualityThresholds()) -> list[Check]:
-    """Checks of the masks and of the trained model, from ``segment.json`` and ``metrics.json`` when present."""
+    """Checks of the cameras' warnings (``poses.json``), the masks and the trained model (``segment.json``,
+    ``metrics.json``), when present: a capture the poses stage warned about is at least a ``warning`` here."""
     out = []
+    if ws.poses_json.is_file():
+        for d in read_json(ws.poses_json).get("checks", []):
+            if d.get("severity") == "warn":
+                c = Check.from_dict(d)
+                out.append(Check(f"poses_{c.name}", c.value, c.threshold, c.op, c.detail, c.severity))
     if ws.segment_json.is_file():
         seg = read_json(ws.segment_json)
         conf = [r["confidence"] for r in seg.get("frames", []) if r.get("confidence") is not None]
