@@ -558,25 +558,43 @@ def test_a_result_failing_its_checks_is_written_marked_and_exits_4(tmp_path, cap
     assert "FAILED" in capsys.readouterr().err
 
 
-def test_a_height_from_the_rim_alone_fails_and_the_plant_bounds_an_unseen_soil(tmp_path):
-    """The soil was not seen (the pot's rim stands for it): with nothing of the plant below the rim the height
-    is short by the soil's depth and the result fails; a plant reaching below the rim inside the pot bounds it."""
+def test_the_height_is_judged_by_bounds_found_apart_from_it(tmp_path):
+    """Issue 41. Soil seen in the pot: bounds within 5 %, ok. Soil hidden under the leaves (the rim stands for it):
+    the plant's lowest point in the pot and the ground bound it; the height from that lowest point is no longer
+    passed by the check that point itself satisfies (it failed silently short before): failed, the truth inside
+    the bounds. No pot (a plant in the ground): the extent, ok."""
     from plantsplat.traits.measure import traits_workspace
 
     pts, cols, plant = make_plant_scene(seed=4, floaters=False)
-    crown = pts[plant][np.argmin(pts[plant][:, 2])]
-    low = float(pts[plant][:, 2].min())
-    rim = {"centre_cm": crown[:2].tolist(), "rim_radius_cm": 8.0}
-    above = _measured_workspace(tmp_path / "a", pts, cols, [0.9] * 20, pot={**rim, "rim_z_cm": low - 1.0,
-                                                                             "soil_z_cm": low - 1.0})
-    out = traits_workspace(above, figure=False)
-    failed = {c["name"] for c in out["checks"] if not c["passed"]}
-    assert out["quality"] == "failed" and failed == {"soil_located"}
-    below = _measured_workspace(tmp_path / "b", pts, cols, [0.9] * 20, pot={**rim, "rim_z_cm": low + 1.0,
-                                                                             "soil_z_cm": low + 1.0})
-    out = traits_workspace(below, figure=False)
-    assert out["quality"] != "failed" and out["soil_z_cm"] == pytest.approx(low)
-    assert any("lowest point inside the pot" in n for n in out["notes"])
+    P = pts[plant]
+    crown, low, top = P[np.argmin(P[:, 2])], float(P[:, 2].min()), float(P[:, 2].max())
+    rim = {"centre_cm": crown[:2].tolist(), "rim_radius_cm": 8.0, "rim_z_cm": low + 1.0}
+    seen = traits_workspace(_measured_workspace(tmp_path / "seen", pts, cols, [0.9] * 20,
+                                                pot={**rim, "soil_z_cm": low - 0.5}), figure=False)
+    assert seen["quality"] == "ok" and seen["soil_interval_cm"] == pytest.approx([low - 0.75, low - 0.25], abs=1e-3)
+    lo, hi = seen["height_bounds_cm"]
+    assert lo < top - (low - 0.5) < hi and (hi - lo) / seen["height_cm"] < 0.05
+    soil = low - 3.0  # the truth: 3 cm below the plant's lowest point, under the leaves
+    hidden = traits_workspace(_measured_workspace(tmp_path / "hidden", pts, cols, [0.9] * 20,
+                                                  pot={**rim, "soil_z_cm": rim["rim_z_cm"]}), figure=False)
+    failed = {c["name"] for c in hidden["checks"] if not c["passed"]}
+    assert hidden["quality"] == "failed" and failed == {"height_interval_share", "height_interval_share_warn"}
+    assert hidden["soil_interval_cm"] == pytest.approx([0.0, low], abs=1e-3)
+    assert hidden["height_bounds_cm"][0] <= top - soil <= hidden["height_bounds_cm"][1]
+    assert hidden["height_cm"] == pytest.approx(top - low)
+    ground = traits_workspace(_measured_workspace(tmp_path / "ground", pts, cols, [0.9] * 20), figure=False)
+    assert ground["quality"] == "ok" and "soil_interval_cm" not in ground
+    assert ground["height_bounds_cm"] == pytest.approx([top - low] * 2, abs=1e-3)
+
+
+def test_height_bounds_widen_with_the_scale_error():
+    from plantsplat.traits.height import SoilInterval, height_bounds, soil_interval
+
+    assert soil_interval(10.0, True, 0.5, None) == SoilInterval(9.75, 10.25, "seen")
+    hidden = soil_interval(12.0, False, 0.5, 9.0)  # the rim at 12 cm, the plant's lowest point in the pot at 9 cm
+    assert (hidden.low, hidden.high) == (0.0, 9.0)
+    assert height_bounds(30.0, None, 0.01, extent=20.0) == pytest.approx((19.6, 20.4))
+    assert height_bounds(30.0, hidden, None) == (21.0, 30.0)
 
 
 def test_a_tiny_cloud_fails_its_checks(tmp_path):

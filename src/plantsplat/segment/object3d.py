@@ -183,7 +183,11 @@ def ring(xy: np.ndarray, axis_xy: np.ndarray, rng: np.random.Generator, band: fl
     return best[0], best[1], c, r
 
 
-def find_pot(points: np.ndarray, axis_xy: np.ndarray, slab: float = 0.5, reach: float = 16.0,
+POT_SLAB_CM = 0.5
+"""Thickness of the horizontal slabs the pot (and its soil) is looked for in: the soil's height is known to it."""
+
+
+def find_pot(points: np.ndarray, axis_xy: np.ndarray, slab: float = POT_SLAB_CM, reach: float = 16.0,
              min_sectors: int = 14, seed: int = 0) -> Pot | None:
     """The pot standing on the ground around the axis, from the model's Gaussians ``points [N, 3]`` (cube frame).
 

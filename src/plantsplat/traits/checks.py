@@ -16,8 +16,8 @@ The thresholds live in :class:`QualityThresholds`. Each lies below every value t
 correctly gave on plantsplat's own synthetic captures, the foreign renders and the demo
 (``benchmarks/bench_e2e.py``, 2026-11-25: masks confidence 0.79-0.90, unsure share <= 0.02, mask
 drawn 0.86-0.97, foreground 15.7-24.2 dB, >= 66k plant points), and above what the broken runs of
-the crafted test cases give. The soil check comes from the same runs: the three heights more than
-10 % off (11-37 %) were all measured from the pot's rim because the soil was not seen.
+the crafted test cases give. The height is judged by its bounds (:mod:`plantsplat.traits.height`): the
+interval the soil can lie in, from evidence other than the height itself, and the scale's error.
 
 Example:
     >>> checks = result_checks({"height_cm": 1.2, "width1_cm": 2.9}, plant_points=142, plant_top_cm=13.0,
@@ -59,6 +59,10 @@ class QualityThresholds:
     """fail: fewer points on the plant than this."""
     plant_height_cube_edges: float = 0.3
     """fail: a plant shorter than this many cube edges (3 cm) is not what was filmed."""
+    height_interval_warn: float = 0.05
+    """warn: the height's bounds (the soil's interval and the scale's error) span more than this share of it."""
+    height_interval_fail: float = 0.10
+    """fail: they span more than this share of it (its middle could then be more than 5 % off)."""
 
 
 def soil_level(ws, calibrated: bool) -> tuple[float | None, str, tuple | None]:
@@ -140,15 +144,19 @@ def stage_checks(ws, t: QualityThresholds = QualityThresholds()) -> list[Check]:
 
 def result_checks(traits: dict, plant_points: int, plant_top_cm: float | None, camera_top_cm: float | None,
                   cube_cm: float, t: QualityThresholds = QualityThresholds(),
-                  soil_located: bool | None = None) -> list[Check]:
+                  height_bounds: tuple[float, float] | None = None, soil_how: str = "") -> list[Check]:
     """Checks of the measurement itself (see the module docstring); heights in the calibrated frame (cm);
-    ``cube_cm``: the edge of the cube the poses stage measured with.
-    ``soil_located``: whether the height's soil was found (None: no pot, the height is the extent)."""
+    ``cube_cm``: the edge of the cube the poses stage measured with. ``height_bounds``: the height's bounds
+    (:mod:`plantsplat.traits.height`), found independently of the height itself; ``soil_how``: how the soil was
+    bounded."""
     out = [Check("plant_points", plant_points, t.plant_points, ">=", "points on the plant after clustering")]
-    if soil_located is not None:
-        out.append(Check("soil_located", float(soil_located), 1.0, ">=",
-                         "the soil was seen in the pot, or the plant's lowest point inside the pot bounds it (from "
-                         "the rim alone the height is short by the soil's depth)"))
+    h = traits.get("height_cm")
+    if height_bounds is not None and h:
+        share = (height_bounds[1] - height_bounds[0]) / h
+        what = (f"the height's bounds {height_bounds[0]:.1f}-{height_bounds[1]:.1f} cm against the height "
+                f"(soil {soil_how or 'none: the extent'})")
+        out.append(Check("height_interval_share", share, t.height_interval_fail, "<=", what))
+        out.append(Check("height_interval_share_warn", share, t.height_interval_warn, "<=", what, severity="warn"))
     h = traits.get("height_cm")
     if h is not None:
         out.append(Check("plant_height_cm", h, t.plant_height_cube_edges * cube_cm, ">=", "against the cube's size"))

@@ -775,11 +775,12 @@ def traits_workspace(ws, cfg=None, *, points_path: str | Path | None = None, cal
     out["input"] = str(ply)
     out["soil_source"] = soil_source
     out["scale"]["calibrated_input"] = bool(calibrated)
+    se = None
     if calibrated and ws.poses_json.is_file():
         se = (read_json(ws.poses_json).get("scale_uncertainty") or {}).get("relative_se")
         out["scale"]["standard_error_pct"] = None if se is None else round(100.0 * se, 3)  # the cube's, from poses
-    rim_only = soil_disc is not None and res.soil_z == soil_z  # the soil unseen, and nothing of the plant below the rim
-    _judge(out, res, ws, cams if calibrated else None, None if soil_z is None else not rim_only, cube_edge_cm(s, cube))
+    soil = _height_bounds(out, res, soil_z if calibrated else None, soil_disc, se)
+    _judge(out, res, ws, cams if calibrated else None, soil, cube_edge_cm(s, cube))
     write_json_atomic(ws.traits_json, out)
     write_text_atomic(ws.traits_csv, traits_csv_text(out, ws.root.name))
     if figure and res.plant_points is not None:
@@ -795,8 +796,29 @@ def traits_workspace(ws, cfg=None, *, points_path: str | Path | None = None, cal
     return out
 
 
-def _judge(out: dict, res: TraitResult, ws, cams: np.ndarray | None, soil_located: bool | None,
-           cube_cm: float) -> None:
+def _height_bounds(out: dict, res: TraitResult, soil_z: float | None, disc: tuple | None, scale_se: float | None):
+    """The soil's interval and the height's bounds (:mod:`plantsplat.traits.height`) into ``out``
+    (``soil_interval_cm``, ``height_bounds_cm``); returns the soil interval (None: no pot, or no plant)."""
+    from plantsplat.segment.object3d import POT_SLAB_CM
+    from plantsplat.traits.height import height_bounds, soil_interval
+
+    P = res.plant_points
+    if P is None or not len(P) or out.get("height_cm") is None:
+        return None
+    soil = None
+    if soil_z is not None:
+        lowest = None
+        if disc is not None:
+            inside = np.linalg.norm(P[:, :2] - np.asarray(disc[0]), axis=1) < disc[1]
+            lowest = float(P[inside, 2].min()) if inside.any() else None
+        soil = soil_interval(soil_z, disc is None, POT_SLAB_CM, lowest)
+        out["soil_interval_cm"] = [round(soil.low, 3), round(soil.high, 3)]
+    lo, hi = height_bounds(float(P[:, 2].max()), soil, scale_se, out.get("height_extent_cm"))
+    out["height_bounds_cm"] = [round(lo, 3), round(hi, 3)]
+    return soil
+
+
+def _judge(out: dict, res: TraitResult, ws, cams: np.ndarray | None, soil, cube_cm: float) -> None:
     """Every stage's checks and the measurement's own (:mod:`plantsplat.traits.checks`) into ``out``'s ``checks``,
     ``quality`` and ``quality_reasons``."""
     from plantsplat.checks import quality
@@ -806,7 +828,8 @@ def _judge(out: dict, res: TraitResult, ws, cams: np.ndarray | None, soil_locate
     if res.plant_points is not None:
         top = float(res.plant_points[:, 2].max())
         checks += result_checks(res.traits, len(res.plant_points), top if cams is not None else None,
-                                None if cams is None else float(cams[:, 2].max()), cube_cm, soil_located=soil_located)
+                                None if cams is None else float(cams[:, 2].max()), cube_cm,
+                                height_bounds=out.get("height_bounds_cm"), soil_how="" if soil is None else soil.how)
     out["checks"] = [c.as_dict() for c in checks]
     verdict = quality(checks)
     order = ["ok", "warning", "failed"]
