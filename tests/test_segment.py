@@ -61,7 +61,8 @@ def gaussians(points: np.ndarray, size: float = 0.4, opacity: float = 0.95) -> d
     return {"means": torch.tensor(points, dtype=torch.float32).reshape(n, 3),
             "quats": torch.tensor([[1.0, 0, 0, 0]] * n).reshape(n, 4),
             "scales": torch.full((n, 3), float(np.log(size))),
-            "opacities": torch.full((n,), float(np.log(opacity / (1 - opacity))))}
+            "opacities": torch.full((n,), float(np.log(opacity / (1 - opacity)))),
+            "sh0": torch.zeros((n, 1, 3))}  # mid grey: colour tells nothing here
 
 
 def pot_points(rng, centre=(25.0, 10.0), rim=12.0, soil=10.5, r0=6.0, r1=8.0, n=3000) -> np.ndarray:
