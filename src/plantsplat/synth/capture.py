@@ -115,7 +115,7 @@ def generate(cfg: SynthConfig) -> dict:
     from plantsplat.synth.scene import make_scene
     from plantsplat.synth.sensor import SensorModel
     from plantsplat.synth.textures import make_layers
-    from plantsplat.synth.video import VideoWriter
+    from plantsplat.synth.video import encode_frames
 
     validate(cfg)
     t_all = time.perf_counter()
@@ -191,8 +191,7 @@ def generate(cfg: SynthConfig) -> dict:
     fg_frac = []
     preview_idx = set(np.linspace(0, cfg.frames - 1, min(6, cfg.frames)).round().astype(int).tolist())
     previews = []
-    with ThreadPoolExecutor(max_workers=2) as pool, \
-            VideoWriter(video_path, cfg.width, cfg.height, FPS, crf=cfg.crf) as vw:
+    with ThreadPoolExecutor(max_workers=2) as pool:
         pending = []
         for i in progress(range(cfg.frames), "rendering frames"):
             t0 = time.perf_counter()
@@ -218,7 +217,6 @@ def generate(cfg: SynthConfig) -> dict:
             if ideal is not None:
                 obj = ideal.develop(renderer.render_objects(c2ws[i]), i, np.random.default_rng(0))
                 pending.append(pool.submit(write_image_atomic, out / "objects" / name, obj))
-            vw.write(rgb)
             t_render += t1 - t0
             t_dev += t2 - t1
             t_vis += t3 - t2
@@ -239,7 +237,8 @@ def generate(cfg: SynthConfig) -> dict:
                 pending = pending[-8:]
         for f in pending:
             f.result()
-        video_settings = vw.settings
+    video_settings = encode_frames([out / "frames" / IMAGE_PATTERN.format(i) for i in range(cfg.frames)], video_path,
+                                   cfg.width, cfg.height, FPS, cfg.crf)  # the same frames, the same video
     write_image_atomic(out / "preview.png", np.concatenate(previews, axis=1))
     gl_renderer = renderer.ctx.info["GL_RENDERER"]
     renderer.release()

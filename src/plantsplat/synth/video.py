@@ -35,7 +35,8 @@ class VideoWriter:
     def write(self, rgb: np.ndarray) -> None:
         import av
 
-        frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")
+        frame = av.VideoFrame.from_ndarray(np.array(rgb, dtype=np.uint8, order="C", copy=True), format="rgb24")
+        frame.pts = self.n  # timestamps from the frame count, not left to the library
         for packet in self.stream.encode(frame):
             self.container.mux(packet)
         self.n += 1
@@ -57,3 +58,38 @@ class VideoWriter:
 
     def __exit__(self, exc_type, exc, tb) -> None:
         self.close(ok=exc_type is None)
+
+
+def encode_frames(frames: list[Path], path: Path, width: int, height: int, fps: int, crf: int) -> dict:
+    """Encode the image files ``frames`` (in order) to ``path`` in a fresh Python process; returns the settings.
+
+    In the process that rendered the frames (OpenGL through llvmpipe), libx264 encoded the same frames to a
+    different video from run to run (51 of 120 frames, up to 40 grey levels; the cause was not found); a process
+    of its own encodes them the same every time."""
+    import json
+    import subprocess
+    import sys
+
+    job = json.dumps({"frames": [str(f) for f in frames], "path": str(path), "width": width, "height": height,
+                      "fps": fps, "crf": crf})
+    done = subprocess.run([sys.executable, "-m", "plantsplat.synth.video"], input=job, text=True, capture_output=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"{path}: encoding the video failed: {done.stderr.strip().splitlines()[-1:]}")
+    return json.loads(done.stdout)
+
+
+def _encode_job() -> None:
+    import json
+    import sys
+
+    from plantsplat.io import read_image
+
+    job = json.loads(sys.stdin.read())
+    with VideoWriter(job["path"], job["width"], job["height"], job["fps"], crf=job["crf"]) as vw:
+        for f in job["frames"]:
+            vw.write(read_image(f))
+    print(json.dumps(vw.settings))
+
+
+if __name__ == "__main__":
+    _encode_job()
