@@ -55,19 +55,20 @@ def synth_capture(tmp_path_factory):
 
 @pytest.fixture
 def interrupted_after():
-    """``interrupted_after(real, n)``: a stand-in for a ``write(path, data)`` function that raises
-    KeyboardInterrupt (a Ctrl-C mid-stage) on its ``n``-th call and otherwise calls ``real``."""
+    """``interrupted_after(real, n)``: a stand-in for a function (a ``write(path, data)``, a training step's
+    ``render``) that raises KeyboardInterrupt (a Ctrl-C mid-stage) on its ``n``-th call and otherwise returns
+    what ``real`` returns."""
 
     def make(real, n: int):
         calls = []
 
-        def write(path, data):
-            calls.append(path)
+        def stand_in(*args, **kwargs):
+            calls.append(args)
             if len(calls) == n:
                 raise KeyboardInterrupt
-            real(path, data)
+            return real(*args, **kwargs)
 
-        return write
+        return stand_in
 
     return make
 

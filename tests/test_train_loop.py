@@ -175,7 +175,7 @@ def test_export_round_trip(trained):
     assert len(read_splat_ply(ws.splat_ply)["means"]) == len(g["means"])
 
 
-def test_resume_after_interrupt(synth_capture, tmp_path, monkeypatch):
+def test_resume_after_interrupt(synth_capture, tmp_path, monkeypatch, interrupted_after):
     from plantsplat.pipeline import train_stage
     from plantsplat.train import trainer
     from plantsplat.train.checkpoint import load_checkpoint
@@ -184,15 +184,7 @@ def test_resume_after_interrupt(synth_capture, tmp_path, monkeypatch):
     cfg = TrainConfig(iterations=16, max_resolution=64, num_downscales=0, checkpoint_seconds=0,
                               evaluate=False, init_points=2000)
     real_render = trainer.render
-    calls = {"n": 0}
-
-    def flaky(*a, **k):
-        calls["n"] += 1
-        if calls["n"] == 8:
-            raise KeyboardInterrupt
-        return real_render(*a, **k)
-
-    monkeypatch.setattr(trainer, "render", flaky)
+    monkeypatch.setattr(trainer, "render", interrupted_after(real_render, 8))
     with pytest.raises(KeyboardInterrupt):
         train_stage(ws, cfg)
     ck = load_checkpoint(ws.root / ".train.partial" / "checkpoint.pt")
@@ -208,7 +200,8 @@ def test_resume_after_interrupt(synth_capture, tmp_path, monkeypatch):
     assert other["resumed"] is False and other["mode"] == "full"
 
 
-def test_retraining_keeps_the_finished_model_until_the_new_one_is_complete(synth_capture, tmp_path, monkeypatch):
+def test_retraining_keeps_the_finished_model_until_the_new_one_is_complete(synth_capture, tmp_path, monkeypatch,
+                                                                             interrupted_after):
     """Issue 42 #2: a finished model re-trained with other options, then interrupted or failed, is still there
     (model.pt, split.json, metrics.json as they were); the new run, once complete, replaces them whole."""
     from plantsplat.io import write_image_atomic
@@ -220,15 +213,7 @@ def test_retraining_keeps_the_finished_model_until_the_new_one_is_complete(synth
     train_stage(ws, TrainConfig(iterations=6, **small))
     kept = {p: p.read_bytes() for p in (ws.train_dir / "model.pt", ws.train_dir / "split.json", ws.metrics_json)}
     real_render = trainer.render
-    calls = {"n": 0}
-
-    def interrupted(*a, **k):
-        calls["n"] += 1
-        if calls["n"] == 4:
-            raise KeyboardInterrupt
-        return real_render(*a, **k)
-
-    monkeypatch.setattr(trainer, "render", interrupted)
+    monkeypatch.setattr(trainer, "render", interrupted_after(real_render, 4))
     with pytest.raises(KeyboardInterrupt):
         train_stage(ws, TrainConfig(iterations=8, **small))
     assert {p: p.read_bytes() for p in kept} == kept
