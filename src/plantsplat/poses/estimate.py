@@ -241,20 +241,21 @@ def _fewer_contradictions(errors: dict, other: dict, max_px: float) -> float:
     return (only_a - only_b) / max(np.sqrt(only_a + only_b), 1.0)
 
 
-def _most_consistent(db: Path, vocab: Path | None, names: list[str], ws: Workspace, cfg: PosesConfig, report: dict):
+def _most_consistent(db: Path, vocab: Path | None, names: list[str], times: list[float], ws: Workspace,
+                     cfg: PosesConfig, report: dict):
     """Each mapper of ``cfg.mapper`` (``auto``: incremental, then global). Among the models that keep nearly as many
     frames on the cameras' path (:func:`off_path_frames`) as the best, the first, unless another contradicts
-    significantly fewer of the matched pairs (:func:`_fewer_contradictions`, :mod:`plantsplat.poses.consistency`)."""
+    significantly fewer of the matched pairs (:func:`_fewer_contradictions`, :mod:`plantsplat.poses.consistency`).
+    The kept model's frames off the path are left out (:func:`leave_out_off_path`)."""
     from plantsplat.poses.consistency import contradiction, pair_errors
 
     mappers = ["incremental", "global"] if cfg.mapper == "auto" else [cfg.mapper]
-    times = video_times(ws, names)
-    found = {}
+    found, off = {}, {}
     for m in mappers:
         rec = _map(db, vocab, names, ws, cfg, report, m)
         if rec is not None:
-            kept = rec.num_reg_images() - len(off_path_frames(rec, names, times, cfg)) if len(mappers) > 1 else 0
-            found[m] = (rec, pair_errors(rec, db), kept)
+            off[m] = off_path_frames(rec, names, times, cfg)
+            found[m] = (rec, pair_errors(rec, db), rec.num_reg_images() - len(off[m]))
     if not found:
         return None
     most = max(k for _, _, k in found.values())
@@ -268,11 +269,13 @@ def _most_consistent(db: Path, vocab: Path | None, names: list[str], ws: Workspa
     report["mapper"] = best
     if len(found) > 1:
         report["events"].append(f"{best} mapping kept" + (": its matches contradict it least" if best != mappers[0] else ""))
+    leave_out_off_path(found[best][0], names, times, cfg, report, off[best])
     return found[best][0]
 
 
-def register(ws: Workspace, names: list[str], cfg: PosesConfig, report: dict):
-    """SfM on whole frames (no masks, no cube); returns the model (model frame) with the most frames."""
+def register(ws: Workspace, names: list[str], times: list[float], cfg: PosesConfig, report: dict):
+    """SfM on whole frames (no masks, no cube); returns the model (model frame) :func:`_most_consistent` keeps, its
+    frames off the camera's path (``times``: the frames' times in the video) left out."""
     from plantsplat.poses.sfm import extract_features
 
     work = ws.root / WORK_DIR
@@ -284,7 +287,7 @@ def register(ws: Workspace, names: list[str], cfg: PosesConfig, report: dict):
     t0 = time.perf_counter()
     vocab = _match(db, work, names, cfg, report)
     timings["match_s"] = time.perf_counter() - t0
-    rec = _most_consistent(db, vocab, names, ws, cfg, report)
+    rec = _most_consistent(db, vocab, names, times, ws, cfg, report)
     if rec is None:
         raise PlantsplatError(
             f"{ws.images_dir}: COLMAP could not reconstruct any model from {len(names)} frames; the frames may be "
@@ -338,10 +341,12 @@ def off_path_frames(rec, names: list[str], times: list[float], cfg: PosesConfig)
     return drop
 
 
-def leave_out_off_path(rec, names: list[str], times: list[float], cfg: PosesConfig, report: dict) -> list[str]:
-    """Deregister the frames :func:`off_path_frames` finds; returns their names."""
+def leave_out_off_path(rec, names: list[str], times: list[float], cfg: PosesConfig, report: dict,
+                       drop: list[str] | None = None) -> list[str]:
+    """Deregister the frames :func:`off_path_frames` finds (``drop``: already found for this model); returns their
+    names."""
     reg = _registered(rec)
-    drop = off_path_frames(rec, names, times, cfg)
+    drop = off_path_frames(rec, names, times, cfg) if drop is None else drop
     for n in drop:
         rec.deregister_frame(reg[n].frame_id)
     if drop:
@@ -566,10 +571,8 @@ def estimate_poses(ws: Workspace | str | Path, cfg: PosesConfig | None = None) -
                     "camera_model": cfg.camera_model, "source": "sfm"}
     markers = _markers(ws, names, cube, cfg, report)
     sfm = cfg.import_colmap is None and cfg.import_transforms is None
-    rec = register(ws, names, cfg, report) if sfm else _import(ws, names, cfg, report)
     times = video_times(ws, names)
-    if sfm:
-        leave_out_off_path(rec, names, times, cfg, report)
+    rec = register(ws, names, times, cfg, report) if sfm else _import(ws, names, cfg, report)
     t0 = time.perf_counter()
     cal = calibrate_model(rec, markers, cube, cfg, sfm, report, [n for _, n in sorted(zip(times, names))])
     report["timings"]["calibrate_s"] = time.perf_counter() - t0
