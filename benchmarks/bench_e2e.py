@@ -29,8 +29,11 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 from plantsplat.cli import main as cli
 from plantsplat.io import read_json, write_json_atomic
+from plantsplat.poses.evaluate import cube_from_world
 from plantsplat.resources import machine_info
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -59,6 +62,8 @@ def run_capture(label: str, video: Path, truth: Path, ws: Path, mode: str = "run
         ev = read_json(ws / "evaluation.json")["traits"]
         row["traits"] = {k: {"estimate": v.get("estimate"), "truth": v.get("truth"), "pct_error": v.get("pct_error")}
                          for k, v in ev.items()}
+    if (ws / "traits.json").is_file() and truth.is_file():
+        row.update(height_check(read_json(ws / "traits.json"), read_json(truth)))
     if (ws / "run.json").is_file():
         row["stage_seconds"] = {k: v.get("seconds") for k, v in read_json(ws / "run.json").get("stages", {}).items()}
     for name in ("poses.json", "segment.json", "metrics.json"):
@@ -68,6 +73,44 @@ def run_capture(label: str, video: Path, truth: Path, ws: Path, mode: str = "run
                                       "confidence": d.get("confidence"), "mask_agreement": d.get("mask_agreement"),
                                       "foreground": d.get("foreground")}
     return row
+
+
+def true_soil_z(truth: dict) -> float | None:
+    """The true soil's height in our cube frame (cm): the truth's soil level moved by the similarity from its world
+    frame to the cube frame (a turn about the vertical and a shift, so any point of the level will do)."""
+    soil = truth.get("pot", {}).get("soil_z_cm", truth.get("plant", {}).get("soil_z_cm"))
+    if soil is None:
+        return None
+    return float((cube_from_world(truth) @ np.array([0.0, 0.0, soil, 1.0]))[2])
+
+
+def height_check(traits: dict, truth: dict) -> dict:
+    """Issue 41's figures for one run: the soil found against the true soil, and whether the height's bounds hold
+    the true height above the soil."""
+    out: dict = {"height_bounds_cm": traits.get("height_bounds_cm"), "soil_interval_cm": traits.get("soil_interval_cm")}
+    soil = true_soil_z(truth)
+    if soil is not None and traits.get("soil_z_cm") is not None:
+        out["soil_error_cm"] = round(float(traits["soil_z_cm"]) - soil, 3)
+    h = truth.get("plant", {}).get("height_above_soil_cm", truth.get("height_cm"))
+    b = traits.get("height_bounds_cm")
+    if h is not None and b:
+        out["truth_in_height_bounds"] = bool(b[0] <= h <= b[1])
+    return out
+
+
+def height_verdict(rows: list[dict]) -> dict:
+    """Issue 41's conditions: no run exits 0 with a height more than 5 % off; runs with a height within 3 % that exit
+    0; soil within 0.5 cm of the truth; the true height inside the bounds."""
+    def err(r):
+        e = r.get("traits", {}).get("height_cm", {}).get("pct_error")
+        return None if e is None else abs(e)
+    soil = [abs(r["soil_error_cm"]) for r in rows if r.get("soil_error_cm") is not None]
+    return {"runs": len(rows),
+            "exit0_height_over_5pct": [r["capture"] for r in rows if r["exit_code"] == 0 and (err(r) or 0) > 5],
+            "exit0_height_within_3pct": sum(r["exit_code"] == 0 and err(r) is not None and err(r) <= 3 for r in rows),
+            "soil_within_0_5cm": sum(s <= 0.5 for s in soil), "soil_known": len(soil),
+            "soil_worst_cm": max(soil) if soil else None,
+            "truth_in_bounds": sum(bool(r.get("truth_in_height_bounds")) for r in rows)}
 
 
 def verdict(rows: list[dict]) -> dict:
@@ -91,7 +134,7 @@ def main() -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="*", default=[81, 82, 83, 84, 85])
-    ap.add_argument("--foreign", nargs="*", default=["101", "102", "103"])
+    ap.add_argument("--foreign", nargs="*", default=["101", "102", "103", "104", "108", "110"])
     ap.add_argument("--demo", action="store_true", help="also run `plantsplat demo`")
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "plantsplat_bench_e2e_captures")
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "plantsplat_bench_e2e")
@@ -131,6 +174,7 @@ def main() -> int:
         rows.append(row)
         print(json.dumps({k: row.get(k) for k in ("capture", "exit_code", "quality", "traits")}), flush=True)
     v = verdict(rows)
+    v["height"] = height_verdict(rows)
     info["loadavg_end"] = list(os.getloadavg())
     write_json_atomic(args.out, {"benchmark": "e2e", "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                                  "machine": info, "verdict": v, "runs": rows})

@@ -171,8 +171,10 @@ def test_model_agrees_with_its_pairs_and_a_moved_camera_does_not(synth_run):
     assert len(errors) > 100
     assert np.median([e for _, e in errors.values()]) < 1.0
     assert contradiction(errors, 4.0) < 0.05
-    im = next(i for i in rec.images.values() if i.has_pose)
-    moved = {p for p, (n, e) in errors.items() if im.name in p and e <= 4.0}
+    agreeing = {i.name: {p for p, (n, e) in errors.items() if i.name in p and e <= 4.0}
+                for i in rec.images.values() if i.has_pose}
+    im = next(i for i in rec.images.values() if i.name == max(sorted(agreeing), key=lambda k: len(agreeing[k])))
+    moved = agreeing[im.name]  # the frame with the most agreeing pairs: a test of the pairs, not of one frame's luck
     turn = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([np.radians(3.0), 0.0, 0.0])), np.zeros(3))  # a tilt: across the
     # epipolar lines of an orbit (a pan moves points along them between neighbours on a ring)
     im.frame.rig_from_world = turn * im.frame.rig_from_world

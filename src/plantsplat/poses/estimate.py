@@ -114,7 +114,8 @@ class PosesConfig:
     """With --mapper auto, a model other than the incremental mapper's is kept only when the matched pairs the
     incremental model contradicts and it does not outnumber the reverse by this many standard deviations."""
     num_threads: int = 2
-    """CPU threads for COLMAP."""
+    """CPU threads of feature extraction (matching, k-means and the mappers run on one: the same frames then give the
+    same cameras)."""
     seed: int = 0
     """Random seed (COLMAP's RANSAC and mapper)."""
     colmap_log: bool = False
@@ -168,9 +169,9 @@ def _match(db: Path, work: Path, names: list[str], cfg: PosesConfig, report: dic
         match_exhaustive(db, opts)
         report["pairs"] = len(names) * (len(names) - 1) // 2
         return None
-    vocab = P.build_vocabulary(db, work / "vocabulary.bin", cfg.vocabulary_words, cfg.num_threads, cfg.seed)
+    vocab = P.build_vocabulary(db, work / "vocabulary.bin", cfg.vocabulary_words, cfg.seed)
     pairs = sorted(set(P.video_pairs(names, cfg.video_window))
-                   | set(P.retrieval_pairs(db, vocab, cfg.retrieval_neighbours, cfg.num_threads)))
+                   | set(P.retrieval_pairs(db, vocab, cfg.retrieval_neighbours)))
     report["pairs"] = len(pairs)
     log.info("SfM: matching %d pairs (video neighbours and retrieval)", len(pairs))
     match_pairs(db, work, pairs, opts, "main")
@@ -187,7 +188,7 @@ def _extend(rec, db: Path, vocab: Path | None, names: list[str], ws: Workspace, 
     work = ws.root / WORK_DIR
     extra = set(P.pairs_for_missing(names, rec))
     if vocab is not None:
-        extra |= set(P.retrieval_pairs(db, vocab, 2 * cfg.retrieval_neighbours, cfg.num_threads, query=missing))
+        extra |= set(P.retrieval_pairs(db, vocab, 2 * cfg.retrieval_neighbours, query=missing))
     log.info("SfM: %d frames missing: matching %d more pairs around them, continuing the model", len(missing), len(extra))
     match_pairs(db, work, sorted(extra), cfg.sfm_options(), "missing")
     write_model(rec, work / "seed", cfg.colmap_log)

@@ -34,7 +34,7 @@ def video_pairs(names: list[str], window: int) -> list[tuple[str, str]]:
     return [(names[i], names[j]) for i in range(len(names)) for j in range(i + 1, min(len(names), i + window + 1))]
 
 
-def build_vocabulary(db: Path, out: Path, words: int, num_threads: int, seed: int = 0) -> Path:
+def build_vocabulary(db: Path, out: Path, words: int, seed: int = 0) -> Path:
     """Learn a visual vocabulary of ``words`` words from a sample of the capture's descriptors; written to ``out``."""
     import pycolmap
 
@@ -49,7 +49,7 @@ def build_vocabulary(db: Path, out: Path, words: int, num_threads: int, seed: in
     index = pycolmap.VisualIndex.create(desc.shape[1], 64)
     opts = pycolmap.VisualIndex.BuildOptions()
     opts.num_visual_words = words
-    opts.num_threads = num_threads
+    opts.num_threads = 1  # with two, k-means gave a different vocabulary in about one run in five (2026-11-27), as fast
     opts.num_iterations = 10
     opts.num_rounds = 1
     with colmap_logging(False):
@@ -58,8 +58,7 @@ def build_vocabulary(db: Path, out: Path, words: int, num_threads: int, seed: in
     return out
 
 
-def retrieval_pairs(db: Path, vocabulary: Path, neighbours: int, num_threads: int,
-                    query: list[str] | None = None) -> list[tuple[str, str]]:
+def retrieval_pairs(db: Path, vocabulary: Path, neighbours: int, query: list[str] | None = None) -> list[tuple[str, str]]:
     """Each frame (or each frame named in ``query``) with the ``neighbours`` frames most alike in visual words."""
     import pycolmap
 

@@ -30,6 +30,10 @@ CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV
 MAP_THREADS = 1
 """Threads of the mappers and bundle adjustments. With two, the incremental mapper gave one of two models of the same
 matches at random (about one run in six, 2026-11-26); with one it gives the same model every time, as fast."""
+MATCH_THREADS = 1
+"""Threads of SIFT matching and two-view verification. With two, COLMAP's CPU matcher returned different matches for
+one or two of 988 pairs in about one run in five (2026-11-27), enough to move the mapping; one thread gives the same
+matches every time, at about 1.4 times the matching time (22 s instead of 15 s for 988 pairs)."""
 
 
 @dataclass
@@ -112,11 +116,11 @@ def extract_features(image_dir: Path, names: list[str], work_dir: Path, opts: Sf
 
 
 def _matching_options(opts: SfmConfig):
-    """pycolmap's matching and two-view verification options for ``opts`` (threads, seeded RANSAC)."""
+    """pycolmap's matching and two-view verification options for ``opts`` (one thread, seeded RANSAC)."""
     import pycolmap
 
     mopts = pycolmap.FeatureMatchingOptions()
-    mopts.num_threads = opts.num_threads
+    mopts.num_threads = MATCH_THREADS
     verif = pycolmap.TwoViewGeometryOptions()
     verif.ransac.random_seed = opts.seed
     verif.ransac.max_num_trials = opts.ransac_max_trials
