@@ -122,7 +122,7 @@ def test_traits_csv_cells_are_not_formulas():
     import csv
     import io
 
-    from plantsplat.traits.measure import traits_csv_text
+    from plantsplat.traits.stage import traits_csv_text
 
     for pid in ("=HYPERLINK(\"http://x\")", "+1", "-2+3", "@SUM(A1)"):
         rows = list(csv.reader(io.StringIO(traits_csv_text({"height_cm": 12.5, "quality": "ok"}, pid))))

@@ -11,8 +11,9 @@ from scipy.spatial.transform import Rotation
 
 from plantsplat import traitdefs
 from plantsplat.traits import accuracy_table, measure_traits
+from plantsplat.traits.config import TraitsConfig
 from plantsplat.traits.cube_fit import cube_surface_points, decide_up, fit_cube_planes
-from plantsplat.traits.measure import TraitsConfig, fruit_mask
+from plantsplat.traits.fruit import fruit_mask
 from plantsplat.traits.stats import format_table, mae, mape, r2, rmse, scatter_plots
 
 CUBE_FACES = ("+x", "-x", "+y", "-y", "top")  # the bottom face stands on the ground and is never seen
@@ -563,7 +564,7 @@ def test_the_height_is_judged_by_bounds_found_apart_from_it(tmp_path):
     the plant's lowest point in the pot and the ground bound it; the height from that lowest point is no longer
     passed by the check that point itself satisfies (it failed silently short before): failed, the truth inside
     the bounds. No pot (a plant in the ground): the extent, ok."""
-    from plantsplat.traits.measure import traits_workspace
+    from plantsplat.traits.stage import run as traits_workspace
 
     pts, cols, plant = make_plant_scene(seed=4, floaters=False)
     P = pts[plant]
@@ -604,7 +605,7 @@ def test_a_tiny_cloud_fails_its_checks(tmp_path):
     plant = rng.normal([24.0, 3.0, 12.0], [1.0, 0.8, 0.4], (142, 3))
     pts = np.concatenate([cube, plant])
     cols = np.concatenate([np.full((len(cube), 3), 230, np.uint8), np.full((142, 3), (40, 95, 25), np.uint8)])
-    from plantsplat.traits.measure import traits_workspace
+    from plantsplat.traits.stage import run as traits_workspace
 
     out = traits_workspace(_measured_workspace(tmp_path, pts, cols), TraitsConfig(min_points=5), figure=False)
     assert out["quality"] == "failed"

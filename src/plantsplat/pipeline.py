@@ -36,7 +36,7 @@ from plantsplat.segment.config import SegmentConfig
 from plantsplat.stages import read_record, require_ok, run_stage
 from plantsplat.train.config import TrainConfig
 from plantsplat.train.export import ExportConfig
-from plantsplat.traits.measure import TraitsConfig
+from plantsplat.traits.config import TraitsConfig
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
@@ -129,20 +129,18 @@ def export_stage(ws: Workspace, cfg: ExportConfig, force: bool = False) -> dict:
 
 def traits_stage(ws: Workspace, cfg: TraitsConfig, force: bool = False, points: Path | None = None,
                  calibrated: bool | None = None, figure: bool = True) -> dict:
-    """Traits and the checks that decide their quality (:func:`plantsplat.traits.traits_workspace`);
+    """Traits and the checks that decide their quality (:func:`plantsplat.traits.stage.run`);
     ``points``: measure this PLY instead of the workspace's export."""
-    from plantsplat.traits import traits_workspace
+    from plantsplat.traits import stage
 
     check_options(cfg, "traits")
     if points is None:
         require_ok(ws, "export")
-    clouds = [Path(points)] if points is not None else [ws.splat_ply, ws.points_ply]
-    inputs = [*clouds, ws.poses_json, ws.markers_json, ws.segment_json, ws.metrics_json, ws.transforms_json]
     config = {**dataclasses.asdict(cfg), "points": str(Path(points).resolve()) if points else None,
               "calibrated": calibrated, "figure": figure}
-    return run_stage(ws, "traits", config, inputs, [ws.traits_json, ws.traits_csv],
-                     lambda resume: traits_workspace(ws, cfg, points_path=points, calibrated=calibrated,
-                                                     figure=figure), force)
+    return run_stage(ws, "traits", config, stage.inputs(ws, points), stage.outputs(ws),
+                     lambda resume: stage.run(ws, cfg, points_path=points, calibrated=calibrated, figure=figure),
+                     force)
 
 
 def evaluate_stage(ws: Workspace, ground_truth: Path, plant_id: str | None, force: bool = False) -> dict:

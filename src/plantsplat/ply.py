@@ -26,6 +26,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import atomic_path
@@ -152,3 +153,45 @@ def is_splat(path: str | os.PathLike) -> bool:
     names = {ln.split()[-1].decode(errors="replace") for ln in head[: max(end, 0)].split(b"\n")
              if ln.startswith(b"property")}
     return SPLAT_COLUMNS <= names
+
+
+def gaussian_extent_points(
+    means: np.ndarray, scales: np.ndarray, quats: np.ndarray, k_sigma: float
+) -> np.ndarray:
+    """The centres and the 6 ends of each Gaussian's principal axes at ``k_sigma`` standard deviations.
+
+    ``means [N, 3]``, ``scales [N, 3]`` (activated standard deviations), ``quats [N, 4]`` (w, x, y, z).
+    Returns ``[7 N, 3]`` in 7 blocks of N: the centres, then each axis end of every Gaussian (so
+    per-Gaussian attributes repeat with ``np.tile(attr, (7, 1))``).
+
+    Example:
+        >>> p = gaussian_extent_points(np.zeros((1, 3)), np.array([[1.0, 2, 3]]), np.array([[1.0, 0, 0, 0]]), 2.0)
+        >>> float(p[:, 2].max()), float(p[:, 1].min())
+        (6.0, -4.0)
+    """
+    q = np.asarray(quats, dtype=np.float64)
+    q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
+    R = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()  # [N, 3, 3], columns = principal axes
+    ax = R * (k_sigma * np.asarray(scales, dtype=np.float64))[:, None, :]  # [N, 3, 3] scaled columns
+    means = np.asarray(means, np.float64)
+    ends = [means + sgn * ax[:, :, j] for j in range(3) for sgn in (1.0, -1.0)]  # 6 x [N, 3]
+    return np.concatenate([means, *ends])  # block k holds point k of every Gaussian
+
+
+def read_splat_extent_cloud(path: str | Path, opacity_min: float, k_sigma: float) -> dict[str, np.ndarray]:
+    """Point cloud of the opaque Gaussians of an Inria-layout ``splat.ply`` with their extents
+    (see :func:`gaussian_extent_points`; ``k_sigma`` 0: the centres alone); colours from the SH DC term.
+    The PLY's opacity is a logit: it is mapped through the sigmoid before ``opacity_min`` applies."""
+    g = read_splat(path)
+    op = 1.0 / (1.0 + np.exp(-np.asarray(g["opacities"], np.float64)))  # [N]
+    keep = op >= opacity_min
+    means = np.asarray(g["means"], np.float64)[keep]
+    scales = np.exp(np.asarray(g["scales"], np.float64)[keep])
+    pts = gaussian_extent_points(means, scales, np.asarray(g["quats"])[keep], k_sigma) if k_sigma > 0 else means
+    rgb = np.clip(0.5 + 0.28209479177387814 * np.asarray(g["sh0"], np.float64)[keep, 0, :], 0, 1)
+    rgb = np.round(rgb * 255).astype(np.uint8)
+    centre = np.zeros(len(pts), bool)
+    centre[: len(means)] = True
+    return {"xyz": pts, "rgb": np.tile(rgb, (len(pts) // max(len(means), 1), 1)), "opacity": None, "scales": None,
+            "centre": centre,
+            "gaussians": int(keep.sum())}

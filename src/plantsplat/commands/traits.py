@@ -10,7 +10,7 @@ import tyro
 
 from plantsplat.commands import Command
 from plantsplat.traitdefs import TRAIT_KEYS
-from plantsplat.traits.measure import TraitsConfig
+from plantsplat.traits.config import TraitsConfig
 
 
 @dataclass

@@ -7,12 +7,9 @@ Usage:
     res.traits["height_cm"], res.quality
 """
 
-from plantsplat.traits.measure import (
-    TraitResult,
-    TraitsConfig,
-    measure_traits,
-    traits_workspace,
-)
+from plantsplat.traits.config import TraitsConfig
+from plantsplat.traits.measure import measure_traits
+from plantsplat.traits.result import TraitResult
 from plantsplat.traits.stats import (
     accuracy_table,
     format_table,
@@ -28,5 +25,4 @@ __all__ = [
     "measure_traits",
     "scatter_plots",
     "trait_metrics",
-    "traits_workspace",
 ]

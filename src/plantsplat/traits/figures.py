@@ -20,7 +20,7 @@ def _subsample(n: int, k: int, seed: int = 0) -> np.ndarray:
 
 
 def traits_figure(result, path: str | Path, title: str = "", max_points: int = 30000) -> None:
-    """Draw ``result`` (a :class:`~plantsplat.traits.measure.TraitResult` with plant points) to a PNG.
+    """Draw ``result`` (a :class:`~plantsplat.traits.result.TraitResult` with plant points) to a PNG.
 
     Left: top view (x, y) of the plant's points in their colours, the cube's footprint, the PCA
     centre and axes and the width1/width2 extents as a rectangle. Right: side view (the points

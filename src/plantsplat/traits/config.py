@@ -1,0 +1,99 @@
+"""The traits stage's settings: :class:`TraitsConfig`, the one source of every option and tuning constant of the
+measurement (each a documented field), and the calibration cube's edge they measure with.
+
+Example:
+    >>> TraitsConfig().opacity_min, cube_edge_cm(TraitsConfig(cube_size_cm=20.0), None)
+    (0.1, 20.0)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from plantsplat.cube import CubeSpec
+
+ROBUST_KEYS = ("height_cm", "height_extent_cm", "width1_cm", "width2_cm")
+"""The traits also given from trimmed quantiles (``robust`` in ``traits.json``)."""
+
+
+@dataclass
+class TraitsConfig:
+    """Settings of the trait measurement (all lengths in cm unless said otherwise)."""
+
+    opacity_min: float = 0.1
+    """Keep Gaussians whose opacity is at least this (the paper's culling threshold tau_alpha)."""
+    max_scale_cm: float | None = None
+    """Drop Gaussians whose largest extent exceeds this (cm; calibrated clouds only). None: keep all."""
+    eps: float | None = None
+    """DBSCAN radius in the cloud's units (cm when calibrated). None: from the point spacing."""
+    eps_factor: float = 3.0
+    """Automatic radius = this times the median distance to the min_points-th neighbour."""
+    eps_min_cm: float = 0.4
+    """Lower bound of the automatic radius on calibrated clouds (cm)."""
+    eps_max_cm: float = 2.0
+    """Upper bound of the automatic radius on calibrated clouds (cm)."""
+    min_points: int = 10
+    """DBSCAN minimum neighbourhood size."""
+    max_cluster_points: int = 250_000
+    """Cluster at most this many points (a random subset; the rest take their neighbour's label)."""
+    merge_distance_cm: float | None = None
+    """None: every cluster that is not the cube, below the ground or a floater is plant (the masks decided the
+    object in 3D, so what the model holds is plant; leaves on petioles too thin to reconstruct are apart from
+    the crown). A distance (cm): only the clusters linked to the plant by gaps up to it (for clouds made
+    without such masks)."""
+    min_cluster_fraction: float = 0.002
+    """Clusters smaller than this fraction of the main plant cluster are floaters."""
+    fruit_join_cm: float = 15.0
+    """Clusters left out as far from the plant join it when they are mostly fruit-coloured, lie within this distance
+    of the plant and no higher than its top: fruit hang on peduncles too thin to be reconstructed."""
+    fruit_join_fraction: float = 0.5
+    """Share of fruit-coloured points that makes a cluster a hanging fruit."""
+    fruit_join_unripe_cm: float = 7.0
+    """Unripe fruit and trusses of ripe and unripe fruit join the same way: clusters mostly of red or unripe-fruit
+    colour (pale yellow-green to cream, the segmenter's colour model) no thicker than this (cm) and no longer than
+    twice it (the segmenter's ``unripe_fruit_cm``), since walls, boxes and pots share the unripe colour; 0: only
+    mostly red clusters join."""
+    trim: float = 0.0005
+    """Robust height/widths use the trim .. 1-trim quantiles instead of min .. max (0.0005: the ~0.05 % most
+    extreme points on each side are ignored)."""
+    cube_size_cm: float | None = None
+    """Edge of the calibration cube (cm). Default: the cube the poses stage measured with (its record in
+    markers.json, from --poses.cube-size), else the cube's default (:class:`~plantsplat.cube.CubeSpec`)."""
+    scale_tolerance_pct: float = 3.0
+    """Flag the result when ArUco and cube-plane scales disagree by more than this (%)."""
+    max_tilt_deg: float = 3.0
+    """Flag the result when the cube's vertical and the frame's z differ by more than this (deg)."""
+    fruit_hue_deg: float = 12.0
+    """Fruit colour: hue within this many degrees of red."""
+    fruit_min_saturation: float = 0.45
+    """Fruit colour: minimum HSV saturation (0..1)."""
+    fruit_min_value: float = 0.2
+    """Fruit colour: minimum HSV value (0..1)."""
+    fruit_eps_cm: float = 0.6
+    """DBSCAN radius for grouping fruit-coloured points into fruit (cm)."""
+    fruit_min_points: int = 15
+    """Minimum points of one fruit."""
+    fruit_min_size_cm: float = 0.8
+    """Minimum extent of one fruit (cm)."""
+    extent_sigma: float = 2.0
+    """0: measure the Gaussians' centres (the paper). > 0: also use the 6 ends of each Gaussian's principal
+    axes at this many standard deviations (read from export/splat.ply), so that the Gaussians' extents count:
+    a reconstruction's Gaussians sit inside the surfaces they draw, so their centres underestimate every trait."""
+    cube_edge: Literal["auto", "planes", "envelope"] = "auto"
+    """How the cube's edge is measured: 'planes' (mean distance between opposite faces' fitted planes: exact on
+    surface samples), 'envelope' (the 1 %..99 % extent of the cube's points along its axes: Gaussian
+    reconstructions, whose faces' planes lie inside the faces) or 'auto' (envelope for Gaussians, that is when
+    opacities or extent samples come with the points; planes otherwise)."""
+    seed: int = 0
+    """Random seed (subsampling, RANSAC)."""
+
+
+def cube_edge_cm(s: TraitsConfig, cube: CubeSpec | None) -> float:
+    """The cube's edge (cm): ``s.cube_size_cm`` when given, else the recorded ``cube``'s, else the default cube's.
+
+    Example:
+        >>> cube_edge_cm(TraitsConfig(), CubeSpec(size=20.0, marker_size=19.2)), cube_edge_cm(TraitsConfig(), None)
+        (20.0, 10.0)
+    """
+    return float(s.cube_size_cm) if s.cube_size_cm is not None else float((cube or CubeSpec()).size)

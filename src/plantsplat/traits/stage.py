@@ -1,0 +1,194 @@
+"""The traits stage over a workspace: what it reads, what it writes, and :func:`run`.
+
+It reads the exported model (``WS/export/splat.ply``, the Gaussians with their extents sampled, or
+``WS/export/points.ply``, their centres), the poses stage's calibration and cube, the segment stage's
+pot and the other stages' records for their checks; it writes ``WS/traits.json``, ``traits.csv`` and
+``traits.png``. The measurement itself is :func:`plantsplat.traits.measure.measure_traits`; the
+verdict, :mod:`plantsplat.traits.checks`; the height's bounds, :mod:`plantsplat.traits.height`.
+
+Usage:
+    from plantsplat.traits import stage
+    out = stage.run(Workspace("ws/plant_01"))
+    out["height_cm"], out["quality"]
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+
+from plantsplat import traitdefs
+from plantsplat.checks import quality
+from plantsplat.errors import PlantsplatError
+from plantsplat.io import csv_cell, read_json, write_json_atomic, write_text_atomic
+from plantsplat.log import get_logger
+from plantsplat.markers import recorded_cube
+from plantsplat.ply import is_splat, read_point_cloud, read_splat_extent_cloud
+from plantsplat.traits.checks import result_checks, soil_level, stage_checks
+from plantsplat.traits.config import ROBUST_KEYS, TraitsConfig, cube_edge_cm
+from plantsplat.traits.height import height_bounds, soil_interval
+from plantsplat.traits.measure import measure_traits
+from plantsplat.traits.result import TraitResult
+from plantsplat.workspace import Workspace
+
+log = get_logger(__name__)
+
+
+def inputs(ws: Workspace, points: Path | None = None) -> list[Path]:
+    """The files the stage reads (``points``: a PLY measured instead of the workspace's export)."""
+    clouds = [Path(points)] if points is not None else [ws.splat_ply, ws.points_ply]
+    return [*clouds, ws.poses_json, ws.markers_json, ws.segment_json, ws.metrics_json, ws.transforms_json]
+
+
+def outputs(ws: Workspace) -> list[Path]:
+    """The files the stage writes (and its record checks); ``traits.png`` is a figure of them."""
+    return [ws.traits_json, ws.traits_csv]
+
+
+def traits_csv_text(result_json: dict, plant: str) -> str:
+    """One header line and one row: plant, the six traits, robust height/widths, scale, quality."""
+    cols = ["plant", *traitdefs.TRAIT_KEYS, *(f"robust_{k}" for k in ROBUST_KEYS), "scale_source",
+            "aruco_vs_cube_pct", "quality", "quality_reasons"]
+    sc = result_json.get("scale") or {}
+    row = [plant, *(result_json.get(k) for k in traitdefs.TRAIT_KEYS),
+           *((result_json.get("robust") or {}).get(k) for k in ROBUST_KEYS), sc.get("source"),
+           sc.get("aruco_vs_cube_pct"), result_json.get("quality"), " | ".join(result_json.get("quality_reasons", []))]
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(cols)
+    w.writerow(["" if x is None else (f"{x:.4f}" if isinstance(x, float) else csv_cell(x)) for x in row])
+    return buf.getvalue()
+
+
+
+def camera_centres(ws) -> np.ndarray | None:
+    """Camera positions from ``transforms.json`` (camera-to-world matrices), or None."""
+    if not ws.transforms_json.is_file():
+        return None
+    try:
+        tf = json.loads(ws.transforms_json.read_text())
+        mats = [np.asarray(f["transform_matrix"], dtype=np.float64) for f in tf.get("frames", [])]
+        c = np.array([m[:3, 3] for m in mats if m.shape == (4, 4)])
+        return c if len(c) >= 3 else None
+    except (ValueError, KeyError, TypeError):
+        log.warning("%s: could not read camera positions; the vertical is taken from the cube alone", ws.transforms_json)
+        return None
+
+
+def run(ws, cfg=None, *, points_path: str | Path | None = None, calibrated: bool | None = None,
+                     figure: bool = True) -> dict:
+    """Run the traits stage on a workspace; returns the ``traits.json`` content.
+
+    Reads ``WS/export/points.ply`` (or ``points_path``) and ``WS/poses.json`` (``scale_source``
+    'aruco' means calibrated), writes ``traits.json``, ``traits.csv`` and ``traits.png``. The height is
+    measured from the soil (:func:`plantsplat.traits.checks.soil_level`). ``quality`` is ``failed`` when
+    nothing could be measured or a check of a stage or of the measurement fails (the files are written
+    all the same; the commands then exit with :data:`plantsplat.errors.EXIT_RESULT_FAILED`).
+
+    Usage:
+        from plantsplat.workspace import Workspace
+        out = run(Workspace("ws/plant_01"))
+        out["height_cm"], out["quality"]
+    """
+    ws = ws if isinstance(ws, Workspace) else Workspace(ws)
+    s = cfg if isinstance(cfg, TraitsConfig) else TraitsConfig()
+    if points_path:
+        ply = Path(points_path)
+        if not ply.is_file():
+            raise PlantsplatError(f"{ply}: point cloud not found; give an exported points.ply or splat.ply")
+        extents = is_splat(ply)  # a splat PLY is read as Gaussians (its opacity is a logit), at any sigma
+    elif s.extent_sigma > 0 and (ws.splat_ply.is_file() or not ws.points_ply.is_file()):
+        ply, extents = ws.splat_ply, True
+        ws.require(ply, "export")
+    else:
+        ply, extents = ws.points_ply, False
+        ws.require(ply, "export")
+        if s.extent_sigma > 0:
+            log.warning("traits: %s is missing, so the Gaussians' extents are not sampled (centres only, which "
+                        "underestimates the traits); re-run `plantsplat export %s`", ws.splat_ply, ws.root)
+    if calibrated is None:
+        if ws.poses_json.is_file():
+            src = read_json(ws.poses_json).get("scale_source", "none")
+            calibrated = src == "aruco"
+        else:
+            raise PlantsplatError(
+                f"{ws.poses_json}: missing, so the cloud's scale is unknown; run `plantsplat poses {ws.root}` "
+                "or pass --calibrated / --no-calibrated"
+            )
+    if extents:
+        data = read_splat_extent_cloud(ply, s.opacity_min, s.extent_sigma)
+        log.info("traits: %s (%d Gaussians%s)", ply, data["gaussians"],
+                 f" with their extents at {s.extent_sigma:.2g} sigma" if s.extent_sigma > 0 else ", centres only")
+    else:
+        data = read_point_cloud(ply, "run `plantsplat export` first or pass --points")
+    log.info("traits: %s (%d points, %s)", ply, len(data["xyz"]), "calibrated cm" if calibrated else "unscaled")
+    cams = camera_centres(ws)
+    soil_z, soil_source, soil_disc = soil_level(ws, calibrated)
+    cube = recorded_cube(ws.markers_json)  # the cube the poses stage measured with
+    res = measure_traits(data["xyz"], data["rgb"], calibrated=calibrated, opacity=data["opacity"],
+                         scales=data["scales"], camera_centres=None if calibrated else cams, settings=s,
+                         centre_mask=data.get("centre"), soil_z=soil_z, soil_disc=soil_disc, cube=cube)
+    out = res.to_json()
+    out["input"] = str(ply)
+    out["soil_source"] = soil_source
+    out["scale"]["calibrated_input"] = bool(calibrated)
+    se = None
+    if calibrated and ws.poses_json.is_file():
+        se = (read_json(ws.poses_json).get("scale_uncertainty") or {}).get("relative_se")
+        out["scale"]["standard_error_pct"] = None if se is None else round(100.0 * se, 3)  # the cube's, from poses
+    soil = _height_bounds(out, res, soil_z if calibrated else None, soil_disc, se)
+    _judge(out, res, ws, cams if calibrated else None, soil, cube_edge_cm(s, cube))
+    write_json_atomic(ws.traits_json, out)
+    write_text_atomic(ws.traits_csv, traits_csv_text(out, ws.root.name))
+    if figure and res.plant_points is not None:
+        from plantsplat.traits.figures import traits_figure  # deferred: matplotlib is slow to load
+
+        traits_figure(res, ws.traits_png, title=ws.root.name)
+    if out["quality"] == "failed":
+        log.error("traits: FAILED: %s (details in %s)", "; ".join(out["quality_reasons"][:3]), ws.traits_json)
+    for r in out["quality_reasons"] if out["quality"] != "failed" else ():
+        log.warning("traits: %s", r)
+    for r in res.notes:
+        log.info("traits: %s", r)
+    return out
+
+
+def _height_bounds(out: dict, res: TraitResult, soil_z: float | None, disc: tuple | None, scale_se: float | None):
+    """The soil's interval and the height's bounds (:mod:`plantsplat.traits.height`) into ``out``
+    (``soil_interval_cm``, ``height_bounds_cm``); returns the soil interval (None: no pot, or no plant)."""
+    from plantsplat.segment.object3d import POT_SLAB_CM  # deferred: the segment package loads torch
+
+    P = res.plant_points
+    if P is None or not len(P) or out.get("height_cm") is None:
+        return None
+    soil = None
+    if soil_z is not None:
+        lowest = None
+        if disc is not None:
+            inside = np.linalg.norm(P[:, :2] - np.asarray(disc[0]), axis=1) < disc[1]
+            lowest = float(P[inside, 2].min()) if inside.any() else None
+        soil = soil_interval(soil_z, disc is None, POT_SLAB_CM, lowest)
+        out["soil_interval_cm"] = [round(soil.low, 3), round(soil.high, 3)]
+    lo, hi = height_bounds(float(P[:, 2].max()), soil, scale_se, out.get("height_extent_cm"))
+    out["height_bounds_cm"] = [round(lo, 3), round(hi, 3)]
+    return soil
+
+
+def _judge(out: dict, res: TraitResult, ws, cams: np.ndarray | None, soil, cube_cm: float) -> None:
+    """Every stage's checks and the measurement's own (:mod:`plantsplat.traits.checks`) into ``out``'s ``checks``,
+    ``quality`` and ``quality_reasons``."""
+    checks = stage_checks(ws)
+    if res.plant_points is not None:
+        top = float(res.plant_points[:, 2].max())
+        checks += result_checks(res.traits, len(res.plant_points), top if cams is not None else None,
+                                None if cams is None else float(cams[:, 2].max()), cube_cm,
+                                height_bounds=out.get("height_bounds_cm"), soil_how="" if soil is None else soil.how)
+    out["checks"] = [c.as_dict() for c in checks]
+    verdict = quality(checks)
+    order = ["ok", "warning", "failed"]
+    out["quality"] = max(res.quality, verdict, key=order.index)
+    out["quality_reasons"] = [f"check {c.line()}" for c in checks if not c.passed] + list(res.reasons)
