@@ -48,7 +48,8 @@ def run_capture(label: str, video: Path, ground_truth: dict, work: Path) -> dict
     from plantsplat.errors import PlantsplatError
     from plantsplat.frames import FramesConfig, extract_frames
     from plantsplat.io import read_json
-    from plantsplat.poses import PosesConfig, estimate_poses
+    from plantsplat.poses import PosesConfig
+    from plantsplat.poses import stage as poses_stage
     from plantsplat.poses.evaluate import (
         compare_poses,
         object_scale,
@@ -66,7 +67,7 @@ def run_capture(label: str, video: Path, ground_truth: dict, work: Path) -> dict
     t = time.perf_counter()
     error = None
     try:
-        estimate_poses(ws, PosesConfig())
+        poses_stage.run(ws, PosesConfig())
     except PlantsplatError as exc:
         error = str(exc)
     seconds = time.perf_counter() - t
@@ -94,7 +95,8 @@ def run_romi(work: Path) -> dict | None:
     import cv2
 
     from plantsplat.io import read_json, write_image_atomic
-    from plantsplat.poses import PosesConfig, estimate_poses
+    from plantsplat.poses import PosesConfig
+    from plantsplat.poses import stage as poses_stage
     from plantsplat.poses.evaluate import compare_poses, transforms_c2w
     from plantsplat.workspace import Workspace
 
@@ -108,7 +110,7 @@ def run_romi(work: Path) -> dict | None:
         write_image_atomic(ws.images_dir / (n.rsplit(".", 1)[0] + ".png"),
                            cv2.resize(img, (720, 540), interpolation=cv2.INTER_AREA))
     t = time.perf_counter()
-    report = estimate_poses(ws, PosesConfig())
+    report = poses_stage.run(ws, PosesConfig())
     given = {k.rsplit(".", 1)[0] + ".png": v for k, v in transforms_c2w(read_json(src / "transforms.json")).items()}
     cmp = compare_poses(transforms_c2w(read_json(ws.transforms_json)), given)
     return {"capture": "romi_real_plant", "seconds": round(time.perf_counter() - t, 1),

@@ -123,12 +123,12 @@ def far_from_plant(ws: Workspace, truth: np.ndarray) -> dict:
 def prepare(video: Path, ws: Workspace) -> None:
     """Frames and poses as a user runs them (kept from an earlier run of this benchmark)."""
     from plantsplat.frames import FramesConfig, extract_frames
-    from plantsplat.poses import estimate_poses
+    from plantsplat.poses import stage as poses_stage
 
     if not ws.frames_json.is_file():
         extract_frames(video, ws, FramesConfig(num=120, max_size=960))
     if not ws.poses_json.is_file() or read_json(ws.poses_json).get("status") != "ok":
-        estimate_poses(ws)
+        poses_stage.run(ws)
 
 
 def foreign(cap: Path, ws: Workspace) -> dict:
@@ -157,7 +157,8 @@ def synthetic(seed: int, cache: Path, ws: Workspace) -> dict:
 
 def romi_virtual(ws: Workspace) -> dict | None:
     """The ROMI scanner's virtual plant (18 views, no cube): its given cameras, the segmenter, its masks."""
-    from plantsplat.poses import PosesConfig, estimate_poses
+    from plantsplat.poses import PosesConfig
+    from plantsplat.poses import stage as poses_stage
 
     src = DATASETS / "romi_virtual_plant_synthetic"
     if not src.is_dir():
@@ -170,7 +171,7 @@ def romi_virtual(ws: Workspace) -> dict | None:
             cv2.imwrite(str(ws.images_dir / p.name), cv2.cvtColor(rgba[..., :3], cv2.COLOR_RGB2BGR))
     for p in sorted((src / "images").glob("*_rgb.png")):
         truth[p.name] = read_image(src / "images" / p.name.replace("_rgb", "_background"), "gray") < 128
-    estimate_poses(ws, PosesConfig(import_colmap=src / "colmap_text" / "sparse" / "0"))
+    poses_stage.run(ws, PosesConfig(import_colmap=src / "colmap_text" / "sparse" / "0"))
     try:
         segment_workspace(ws, SegmentConfig())
     except PlantsplatError as exc:  # recorded as the result: the benchmark goes on

@@ -62,10 +62,10 @@ def synth_workspace(cap: Path, dst: Path, poses: str = "true") -> tuple[Workspac
         shutil.copy(cap / fr["mask"], ws.masks_dir / name)
         kept.append((name, index))
     if poses == "sfm":
-        from plantsplat.poses.estimate import estimate_poses
+        from plantsplat.poses import stage as poses_stage
 
         t0 = time.perf_counter()
-        rep = estimate_poses(ws)
+        rep = poses_stage.run(ws)
         return ws, {"seconds": round(time.perf_counter() - t0, 1), "registered": rep["registered"],
                     "total": rep["total"], "num_points": rep["num_points"],
                     "reprojection_px": rep["mean_reprojection_error_px"]}

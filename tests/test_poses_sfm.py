@@ -12,7 +12,8 @@ import pytest
 pytest.importorskip("pycolmap")
 
 from plantsplat.io import read_json, write_image_atomic  # noqa: E402
-from plantsplat.poses import PosesConfig, estimate_poses  # noqa: E402
+from plantsplat.poses import PosesConfig  # noqa: E402
+from plantsplat.poses import stage as poses_stage
 from plantsplat.poses.evaluate import (  # noqa: E402
     compare_poses,
     model_c2w,
@@ -33,7 +34,7 @@ def synth_run(synth_capture, tmp_path_factory):
     cap = synth_capture(seed=3, frames=72, width=360, height=640)
     ws = Workspace(tmp_path_factory.mktemp("poses_synth") / "ws")
     shutil.copytree(cap / "frames", ws.images_dir)
-    report = estimate_poses(ws, PosesConfig())
+    report = poses_stage.run(ws, PosesConfig())
     return cap, ws, report
 
 
@@ -90,7 +91,7 @@ def test_import_colmap_is_recalibrated(synth_run, tmp_path):
     rec.write_text(str(user))
     ws2 = Workspace(tmp_path / "ws2")
     shutil.copytree(ws.images_dir, ws2.images_dir)
-    rep = estimate_poses(ws2, PosesConfig(import_colmap=user))
+    rep = poses_stage.run(ws2, PosesConfig(import_colmap=user))
     assert rep["scale_source"] == "aruco" and rep["registered"] == report["registered"]
     err = compare_poses(transforms_c2w(read_json(ws2.transforms_json)), transforms_c2w(read_json(ws.transforms_json)))
     assert err["scale_error_pct"] < 0.1 and err["up_error_deg"] < 0.05 and err["centre_error"]["max"] < 0.05
@@ -112,7 +113,7 @@ def test_romi_real_plant_matches_given_poses(datasets_dir, tmp_path):
         img = cv2.cvtColor(cv2.imread(str(src / "images" / n)), cv2.COLOR_BGR2RGB)
         write_image_atomic(ws.images_dir / (n.rsplit(".", 1)[0] + ".png"), cv2.resize(img, (720, 540),
                                                                                       interpolation=cv2.INTER_AREA))
-    report = estimate_poses(ws, PosesConfig())
+    report = poses_stage.run(ws, PosesConfig())
     assert report["scale_source"] == "none" and report["units"] == "model units"
     assert report["registered"] == len(names)
     given = transforms_c2w(read_json(src / "transforms.json"))
@@ -147,7 +148,7 @@ def test_foreign_capture_registers_without_masks_or_cube(datasets_dir, tmp_path)
     ws = Workspace(tmp_path / "ws")
     extract_frames(folder, ws, FramesConfig(num=len(keep), max_size=960))
     names = ws.image_names()
-    report = estimate_poses(ws, PosesConfig(exhaustive_max_frames=0))  # retrieval, as for a full capture
+    report = poses_stage.run(ws, PosesConfig(exhaustive_max_frames=0))  # retrieval, as for a full capture
     assert report["matcher"] == "retrieval" and report["status"] == "ok"
     assert report["registered"] >= len(names) - 1, report["unregistered"]
     truth = json.loads((cap / "ground_truth.json").read_text())
@@ -202,7 +203,7 @@ def test_the_same_frames_give_the_same_cameras(synth_run, tmp_path):
     cap, ws, report = synth_run
     ws2 = Workspace(tmp_path / "again")
     shutil.copytree(ws.images_dir, ws2.images_dir)
-    again = estimate_poses(ws2, PosesConfig())
+    again = poses_stage.run(ws2, PosesConfig())
     assert again["pairs"] == report["pairs"] and again["registered"] == report["registered"]
     a, b = transforms_c2w(read_json(ws.transforms_json)), transforms_c2w(read_json(ws2.transforms_json))
     assert set(a) == set(b) and max(np.abs(a[n] - b[n]).max() for n in a) < 1e-6

@@ -13,6 +13,7 @@ from plantsplat.cli import main  # noqa: E402
 from plantsplat.cube import CubeSpec  # noqa: E402
 from plantsplat.errors import PlantsplatError  # noqa: E402
 from plantsplat.poses.calibrate import calibrate  # noqa: E402
+from plantsplat.poses.config import PosesConfig  # noqa: E402
 from plantsplat.poses.evaluate import compare_poses, model_c2w, transforms_c2w  # noqa: E402
 from plantsplat.poses.interop import (  # noqa: E402
     OPENCV_TO_OPENGL,
@@ -23,6 +24,9 @@ from plantsplat.poses.interop import (  # noqa: E402
 )
 
 W, H, F = 540, 960, 700.0
+SHARE = PosesConfig().max_off_path_share
+MAX_ANGLE = PosesConfig().max_facing_away_deg
+FACE_BAND = (PosesConfig().face_band_cm, PosesConfig().face_margin_cm, PosesConfig().face_min_points)
 
 
 def look_at(eye, target):
@@ -280,7 +284,6 @@ def test_frames_off_the_camera_path_are_found(ring_change):
     from scipy.spatial.transform import Rotation
 
     from plantsplat.poses.checks import off_path, path_deviations
-    from plantsplat.poses.estimate import PosesConfig
 
     limit = PosesConfig().max_path_deviation
     steps = np.cumsum([0] + [1 + (i % 2) for i in range(47)]).astype(float)  # kept frames 1 or 2 source frames apart
@@ -288,16 +291,16 @@ def test_frames_off_the_camera_path_are_found(ring_change):
     names = sorted(gt)
     dev = path_deviations(gt, names, list(steps))
     assert len(dev) == len(names) and max(dev.values()) < 0.2  # what is left is the arc between neighbours
-    assert off_path(gt, names, list(steps), limit) == []
+    assert off_path(gt, names, list(steps), limit, SHARE) == []
     bad = dict(gt)
     turn = np.eye(4)
     turn[:3, :3] = Rotation.from_euler("y", 6, degrees=True).as_matrix()
     bad[names[10]] = gt[names[10]] @ turn  # turned in place by 6 degrees (its neighbours are 4.5-9 degrees apart)
     bad[names[33]] = gt[names[33]].copy()
     bad[names[33]][:3, 3] += [0.0, 0.0, 6.0]  # lifted by 6 cm (its neighbours are 3.5-7 cm apart)
-    assert sorted(off_path(bad, names, list(steps), limit)) == [names[10], names[33]]
+    assert sorted(off_path(bad, names, list(steps), limit, SHARE)) == [names[10], names[33]]
     # without the frames between, the rest of the path is judged as before
-    assert off_path({n: M for n, M in gt.items() if n not in (names[10], names[33])}, names, list(steps), limit) == []
+    assert off_path({n: M for n, M in gt.items() if n not in (names[10], names[33])}, names, list(steps), limit, SHARE) == []
 
 
 @pytest.mark.parametrize("ring_change", [False, True])
@@ -305,7 +308,6 @@ def test_a_stretch_posed_as_a_block_elsewhere_is_found(ring_change):
     """Three consecutive frames moved together by 9 cm agree with each other (the per-frame check keeps them all);
     predicted from the frames on either side of them, they are found, and nothing else is."""
     from plantsplat.poses.checks import off_path, off_path_runs
-    from plantsplat.poses.estimate import PosesConfig
 
     limit = PosesConfig().max_path_deviation
     steps = np.cumsum([0] + [1 + (i % 2) for i in range(47)]).astype(float)
@@ -315,7 +317,7 @@ def test_a_stretch_posed_as_a_block_elsewhere_is_found(ring_change):
     bad = {n: M.copy() for n, M in gt.items()}
     for n in names[10:13]:
         bad[n][:3, 3] += [6.0, -6.0, 3.0]
-    assert not set(names[10:13]) & set(off_path(bad, names, list(steps), limit))
+    assert not set(names[10:13]) & set(off_path(bad, names, list(steps), limit, SHARE))
     assert off_path_runs(bad, names, list(steps), limit) == names[10:13]
 
 
@@ -327,7 +329,6 @@ def test_a_long_stretch_posed_across_the_orbit_is_found(ring_change):
     from scipy.spatial.transform import Rotation
 
     from plantsplat.poses.checks import facing_away, off_path, off_path_runs
-    from plantsplat.poses.estimate import PosesConfig
 
     cfg = PosesConfig()
     steps = np.cumsum([0] + [1 + (i % 2) for i in range(79)]).astype(float)
@@ -342,7 +343,8 @@ def test_a_long_stretch_posed_across_the_orbit_is_found(ring_change):
     bad = dict(gt)
     for n in names[20:28]:
         bad[n] = about @ turn @ np.linalg.inv(about) @ gt[n]
-    assert facing_away(bad) == [] and not set(names[20:28]) & set(off_path(bad, names, list(steps), cfg.max_path_deviation))
+    assert facing_away(bad, MAX_ANGLE) == []
+    assert not set(names[20:28]) & set(off_path(bad, names, list(steps), cfg.max_path_deviation, SHARE))
     assert off_path_runs(bad, names, list(steps), cfg.max_path_deviation) == []  # longer than the short runs
     assert off_path_runs(bad, names, list(steps), cfg.max_path_deviation, max_run=longest) == names[20:28]
 
@@ -351,11 +353,11 @@ def test_a_camera_looking_away_is_found():
     from plantsplat.poses.checks import facing_away
 
     gt = orbit(24)
-    assert facing_away(gt) == []
+    assert facing_away(gt, MAX_ANGLE) == []
     names = sorted(gt)
     bad = dict(gt)
     bad[names[5]] = gt[names[5]] @ np.diag([-1.0, 1.0, -1.0, 1.0])  # turned round (180 degrees about its y axis)
-    assert facing_away(bad) == [names[5]]
+    assert facing_away(bad, MAX_ANGLE) == [names[5]]
 
 
 def test_face_offsets_find_a_face_out_of_place():
@@ -372,10 +374,10 @@ def test_face_offsets_find_a_face_out_of_place():
     room = rng.uniform(-60, 60, (500, 3))
     room = room[np.abs(room).max(1) > 9]  # points elsewhere in the room are not on the cube
     P = np.concatenate(pts + [room])
-    off = face_offsets(P, cube)
+    off = face_offsets(P, cube, *FACE_BAND)
     assert set(off) == {"+x", "-y", "top"} and all(abs(o) < 0.02 and k >= 150 for o, k in off.values())
     P[:200] += [0.4, 0.0, 0.0]  # the +x face's points 4 mm out
-    assert abs(face_offsets(P, cube)["+x"][0] - 0.4) < 0.02
+    assert abs(face_offsets(P, cube, *FACE_BAND)["+x"][0] - 0.4) < 0.02
 
 
 def test_checks_say_what_failed():

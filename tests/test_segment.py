@@ -262,12 +262,13 @@ def test_interrupted_segment_leaves_no_mix_and_runs_again(tmp_path, monkeypatch,
 @pytest.fixture(scope="module")
 def segmented(synth_capture, tmp_path_factory):
     """A 72-frame 360x640 synthetic capture: frames, poses (SfM), then the segment stage."""
-    from plantsplat.poses import PosesConfig, estimate_poses
+    from plantsplat.poses import PosesConfig
+    from plantsplat.poses import stage as poses_stage
 
     cap = synth_capture(seed=3, frames=72, width=360, height=640)
     ws = Workspace(tmp_path_factory.mktemp("segment_e2e") / "ws")
     shutil.copytree(cap / "frames", ws.images_dir)
-    estimate_poses(ws, PosesConfig())
+    poses_stage.run(ws, PosesConfig())
     info = segment_stage(ws, SegmentConfig())
     return cap, ws, info
 

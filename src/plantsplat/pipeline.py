@@ -29,7 +29,7 @@ from plantsplat.io import read_json, write_json_atomic
 from plantsplat.lock import workspace_lock
 from plantsplat.log import get_logger
 from plantsplat.options import check_options
-from plantsplat.poses.estimate import PosesConfig
+from plantsplat.poses.config import PosesConfig
 from plantsplat.preflight import check_masks_are_ours, check_run
 from plantsplat.resources import StageMeter, machine_info
 from plantsplat.segment.config import SegmentConfig
@@ -78,15 +78,13 @@ def frames_stage(ws: Workspace, source: Path, cfg: FramesConfig, force: bool = F
 
 
 def poses_stage(ws: Workspace, cfg: PosesConfig, force: bool = False) -> dict:
-    """Camera poses calibrated with the cube (:func:`plantsplat.poses.estimate_poses`)."""
-    from plantsplat.poses import estimate_poses, outputs
+    """Camera poses calibrated with the cube (:func:`plantsplat.poses.stage.run`)."""
+    from plantsplat.poses import stage as pose_estimation  # deferred: scipy's rotations are slow to load (CLI start-up)
 
     check_options(cfg, "poses")
     require_ok(ws, "frames")
-    imports = [p for p in (cfg.import_colmap, cfg.import_transforms) if p is not None]
-    return run_stage(ws, "poses", _without(cfg, "colmap_log", "num_threads"), [ws.images_dir, ws.frames_json,
-                                                                               *imports], outputs(ws),
-                     lambda resume: estimate_poses(ws, cfg), force)
+    return run_stage(ws, "poses", _without(cfg, "colmap_log", "num_threads"), pose_estimation.inputs(ws, cfg),
+                     pose_estimation.outputs(ws), lambda resume: pose_estimation.run(ws, cfg), force)
 
 
 def segment_stage(ws: Workspace, cfg: SegmentConfig, force: bool = False) -> dict:

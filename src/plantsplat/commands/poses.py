@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated
@@ -9,7 +10,9 @@ from typing import Annotated
 import tyro
 
 from plantsplat.commands import Command
-from plantsplat.poses.estimate import PosesConfig
+from plantsplat.pipeline import poses_stage
+from plantsplat.poses.config import PosesConfig
+from plantsplat.workspace import Workspace
 
 
 @dataclass
@@ -29,11 +32,6 @@ class PosesCommand:
 
 
 def run(cmd: PosesCommand) -> int:
-    import logging
-
-    from plantsplat.pipeline import poses_stage
-    from plantsplat.workspace import Workspace
-
     if logging.getLogger("plantsplat").isEnabledFor(logging.DEBUG):
         cmd.options.colmap_log = True
     poses_stage(Workspace(cmd.workspace, must_exist=True), cmd.options, cmd.force)

@@ -23,15 +23,15 @@ Example:
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
+from plantsplat.cube import FACE_NAMES
 from plantsplat.log import get_logger
 
 log = get_logger(__name__)
 
 
 def _rotvec(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
     return Rotation.from_matrix(R).as_rotvec()
 
 
@@ -66,8 +66,6 @@ def _predict(c2w: dict, a: str, b: str, ta: float, tb: float, t: float,
     along the arc, not its chord (straight lines without a centre). Returns ``(centre of the camera [3],
     rotation [3, 3], spacing of a and b, their turn in degrees)``.
     """
-    from scipy.spatial.transform import Rotation
-
     f = (t - ta) / (tb - ta)
     Ca, Cb = c2w[a][:3, 3], c2w[b][:3, 3]
     Ra, Rb = c2w[a][:3, :3], c2w[b][:3, :3]
@@ -137,7 +135,7 @@ def path_deviations(c2w: dict[str, np.ndarray], names: list[str], times: list[fl
 
 
 def off_path(c2w: dict[str, np.ndarray], names: list[str], times: list[float], limit: float,
-             max_share: float = 0.2) -> list[str]:
+             max_share: float) -> list[str]:
     """Frames whose camera leaves the path through its video neighbours by more than ``limit`` (see
     :func:`path_deviations`), worst first and judged again without it, up to ``max_share`` of the frames."""
     c2w = dict(c2w)
@@ -195,7 +193,7 @@ def off_path_runs(c2w: dict[str, np.ndarray], names: list[str], times: list[floa
     return [n for n, _ in reg if n in dropped]
 
 
-def facing_away(c2w: dict[str, np.ndarray], max_angle_deg: float = 60.0) -> list[str]:
+def facing_away(c2w: dict[str, np.ndarray], max_angle_deg: float) -> list[str]:
     """Cameras whose optical axis turns more than ``max_angle_deg`` away from the point every camera looks at
     (:func:`orbit_centre`): on an orbit around a plant no camera looks away from it. ``c2w``: camera-to-world
     poses (OpenCV axes)."""
@@ -211,8 +209,8 @@ def facing_away(c2w: dict[str, np.ndarray], max_angle_deg: float = 60.0) -> list
     return out
 
 
-def face_offsets(points: np.ndarray, cube, band: float = 0.6, margin: float = 0.7,
-                 min_points: int = 10) -> dict[str, tuple[float, int]]:
+def face_offsets(points: np.ndarray, cube, band: float, margin: float,
+                 min_points: int) -> dict[str, tuple[float, int]]:
     """Where SfM points near each face of the cube lie, along the face's normal (cube frame, cm).
 
     Points within ``band`` cm of a face's plane and at least ``margin`` cm inside its edges (a
@@ -220,8 +218,6 @@ def face_offsets(points: np.ndarray, cube, band: float = 0.6, margin: float = 0.
     result is ``(median signed distance from the plane, count)``. On a right model the medians are
     near 0; a wrong scale or pose of the cube moves whole faces.
     """
-    from plantsplat.cube import FACE_NAMES
-
     out = {}
     for face in FACE_NAMES:
         if face == "bottom":

@@ -1,156 +1,69 @@
-"""The poses stage: register every frame, check the model, calibrate it with the cube, write the outputs.
+"""Registration, the model's checks and the cube's calibration of the poses stage (:mod:`plantsplat.poses.stage`
+runs them over a workspace).
 
-:func:`estimate_poses` is the library entry point used by ``plantsplat poses`` and ``plantsplat run``.
-
-1. The cube's markers are detected once (:mod:`plantsplat.markers`, ``WS/markers.json``).
-2. Registration needs neither masks nor the cube: SIFT on whole frames, pairs chosen for orbit videos
-   (:mod:`plantsplat.poses.pairs`: video neighbours and retrieval with a vocabulary learned from the
-   capture; every pair when that is affordable), COLMAP's incremental mapper; frames it leaves out
-   are matched again against the registered frames near them and mapping continues from the model.
-3. Frames whose camera leaves the path of its video neighbours are left out
-   (:func:`~plantsplat.poses.checks.off_path`).
-4. The cube gives scale, gravity and origin only (:func:`~plantsplat.poses.calibrate.calibrate`),
-   then a bundle adjustment holds the marker corners fixed on the cube.
-5. The model is checked (:mod:`plantsplat.poses.checks`): registered share, camera path, the cube's
-   reprojection, its scale from both halves of the video, the SfM points on its faces. A model that
-   fails a check is not written: the stage stops with a one-line error naming the check.
+1. Registration needs neither masks nor the cube (:func:`register`): SIFT on whole frames, pairs chosen for orbit
+   videos (:mod:`plantsplat.poses.pairs`: video neighbours and retrieval with a vocabulary learned from the
+   capture; every pair when that is affordable), COLMAP's incremental mapper; frames it leaves out are matched
+   again against the registered frames near them and mapping continues from the model. A user's model is
+   imported instead by :func:`import_model`.
+2. Frames whose camera leaves the path of its video neighbours are left out (:func:`leave_out_off_path`,
+   :func:`plantsplat.poses.checks.off_path`).
+3. The cube gives scale, gravity and origin only (:func:`calibrate_model`,
+   :func:`plantsplat.poses.calibrate.calibrate`), then a bundle adjustment holds the marker corners fixed on the cube.
+4. The model is checked (:func:`model_checks`, :mod:`plantsplat.poses.checks`): registered share, camera path, the
+   cube's reprojection, its scale from both halves of the video, the SfM points on its faces.
 
 Usage:
-    from plantsplat.poses import PosesConfig, estimate_poses
-    report = estimate_poses(Workspace("ws/plant_01"), PosesConfig())
-    report["registered"], report["total"], report["scale_source"]
+    rec = register(ws, names, times, PosesConfig(), report)
+    cal = calibrate_model(rec, markers, cube, cfg, True, report)
+    checks = model_checks(rec, cal, markers, cube, names, times, cfg)
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 
 from plantsplat.checks import Check
 from plantsplat.cube import CubeSpec
-from plantsplat.errors import EXIT_POSES_FAILED, PlantsplatError, UsageError
-from plantsplat.io import read_json, write_json_atomic
+from plantsplat.errors import EXIT_POSES_FAILED, PlantsplatError
 from plantsplat.log import get_logger
 from plantsplat.markers import Markers
+from plantsplat.poses.calibrate import calibrate, refine_with_cube, scale_uncertainty
+from plantsplat.poses.checks import face_offsets, facing_away, off_path, off_path_runs
+from plantsplat.poses.config import LOGGED_NAMES, WORK_DIR, PosesConfig
+from plantsplat.poses.consistency import contradicted, contradiction, pair_errors
+from plantsplat.poses.imports import name_map, rename_images
+from plantsplat.poses.interop import c2w_opencv, read_colmap, read_transforms
+from plantsplat.poses.localize import add_frames, localize_frames
+from plantsplat.poses.pairs import build_vocabulary, pairs_for_missing, retrieval_pairs, video_pairs
+from plantsplat.poses.sfm import (
+    MAP_THREADS,
+    colmap_logging,
+    extract_features,
+    global_then_incremental,
+    incremental,
+    match_exhaustive,
+    match_pairs,
+    merge_models,
+    write_model,
+)
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
 
-MIN_FRAMES = 3
-WORK_DIR = ".plantsplat/colmap"
-POSES_VERSION = 2
 
-
-@dataclass
-class PosesConfig:
-    """Options of the poses stage."""
-
-    matcher: Literal["auto", "retrieval", "exhaustive"] = "auto"
-    """Pairs to match: retrieval (video neighbours + visually similar frames), exhaustive (every pair), auto
-    (exhaustive up to --exhaustive-max-frames frames, else retrieval)."""
-    mapper: Literal["auto", "incremental", "global"] = "auto"
-    """COLMAP mapper: incremental (frames missing at first are matched again and mapping continues), global (global
-    mapping, then incremental mapping continued from it), or auto (both; the model its own matches contradict least)."""
-    camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "RADIAL"
-    """COLMAP camera model shared by all frames (phones: RADIAL)."""
-    max_features: int = 2048
-    """SIFT features per frame."""
-    sift_first_octave: int = -1
-    """SIFT first octave: -1 upsamples frames 2x (more small features, COLMAP's default); 0 is faster."""
-    video_window: int = 3
-    """Retrieval matching: each frame is matched with this many following frames of the video."""
-    retrieval_neighbours: int = 20
-    """Retrieval matching: each frame is matched with this many frames most alike in visual words."""
-    vocabulary_words: int = 1024
-    """Retrieval matching: words of the visual vocabulary learned from the capture."""
-    exhaustive_max_frames: int = 50
-    """With --matcher auto, captures of up to this many frames match every pair."""
-    import_colmap: Path | None = None
-    """Use this COLMAP model (folder with cameras/images/points3D, .bin or .txt) instead of running SfM."""
-    import_transforms: Path | None = None
-    """Use this nerfstudio transforms.json instead of running SfM."""
-    calibrate: bool = True
-    """Calibrate scale, gravity and origin with the ArUco cube (--no-calibrate keeps the model as it is)."""
-    max_residual_px: float = 3.0
-    """Marker detections reprojecting worse than this (pixels) are left out of the calibration; the cube check uses it."""
-    cube_bundle_adjustment: bool = True
-    """After calibration, bundle-adjust with the cube's marker corners as fixed control points (SfM only)."""
-    min_registered: float = 0.7
-    """Fail (exit code 3) when fewer than this share of the frames is registered and on the camera's path."""
-    warn_registered: float = 0.95
-    """Warn (the run goes on with the frames it could use) when fewer than this share is registered."""
-    min_cube_frames: float = 0.1
-    """Warn when the cube's markers are found in fewer than this share of the frames."""
-    max_camera_cube_px: float = 15.0
-    """A camera whose own marker detections the calibrated cube misses by more than this (px, RMS) is wrong: it is
-    left out."""
-    max_path_deviation: float = 0.3
-    """A camera off the path of its video neighbours by more than this share of the step to them (or of twice
-    their turn) is left out."""
-    max_off_path_block: float = 0.1
-    """The longest stretch of consecutive frames (share of the frames, at least 4) checked as a block that agrees with
-    itself but was posed somewhere off the path of the frames around it."""
-    max_scale_disagreement: float = 0.03
-    """Fail when the cube's scale from the two halves of the video differs by more than this share."""
-    max_face_offset_cm: float = 0.3
-    """Fail when the SfM points on a face of the cube lie farther than this from the face's plane."""
-    cube_size: float = CubeSpec.size
-    """Cube edge (cm)."""
-    marker_size: float = CubeSpec.marker_size
-    """Marker side, black border included (cm)."""
-    dictionary: str = "DICT_4X4_50"
-    """ArUco dictionary of the cube's markers."""
-    max_pair_error_px: float = 4.0
-    """A matched pair whose inliers lie farther than this (median Sampson distance, px) from the epipolar geometry the
-    model gives the two frames is contradicted by the model (--mapper auto keeps the model with the fewest)."""
-    mapper_keep_share: float = 0.95
-    """With --mapper auto, only models keeping at least this share of the most frames any mapper keeps on the cameras' path
-    compete on consistency."""
-    mapper_switch_sigma: float = 3.0
-    """With --mapper auto, a model other than the incremental mapper's is kept only when the matched pairs the
-    incremental model contradicts and it does not outnumber the reverse by this many standard deviations."""
-    num_threads: int = 2
-    """CPU threads of feature extraction (matching, k-means and the mappers run on one: the same frames then give the
-    same cameras)."""
-    seed: int = 0
-    """Random seed (COLMAP's RANSAC and mapper)."""
-    colmap_log: bool = False
-    """Show COLMAP's own log on stderr (also on with the global --verbose)."""
-
-    def cube(self) -> CubeSpec:
-        return CubeSpec(size=self.cube_size, marker_size=self.marker_size, dictionary=self.dictionary)
-
-    def sfm_options(self):
-        from plantsplat.poses.sfm import SfmConfig
-
-        return SfmConfig(camera_model=self.camera_model, max_features=self.max_features,
-                          first_octave=self.sift_first_octave, num_threads=self.num_threads, seed=self.seed,
-                          verbose=self.colmap_log)
-
-
-def outputs(ws: Workspace) -> list[Path]:
-    """Files the poses stage writes."""
-    return [ws.sparse_dir, ws.sparse_text_dir, ws.transforms_json, ws.poses_json, ws.sparse_points_ply, ws.markers_json]
-
-
-def video_times(ws: Workspace, names: list[str]) -> list[float]:
-    """Each frame's time in the capture: its source frame number for a video, else its position."""
-    try:
-        info = read_json(ws.frames_json) if ws.frames_json.is_file() else {}
-        src = {f["name"]: f["source_index"] for f in info.get("frames", [])} if info.get("kind") == "video" else {}
-    except (PlantsplatError, KeyError, TypeError, AttributeError):
-        src = {}
-    if all(isinstance(src.get(n), int) for n in names):
-        return [float(src[n]) for n in names]
-    return [float(i) for i in range(len(names))]
-
-
-def _registered(rec) -> dict:
+def registered_images(rec) -> dict:
+    """The frames of model ``rec`` that have a camera, by name."""
     return {im.name: im for im in rec.images.values() if im.has_pose}
+
+
+def shown_names(names: list[str]) -> str:
+    """The first frame names for a log message, and how many more there are."""
+    more = len(names) - LOGGED_NAMES
+    return ", ".join(names[:LOGGED_NAMES]) + (f" and {more} more" if more > 0 else "")
 
 
 # --- registration --------------------------------------------------------------------------------
@@ -158,9 +71,6 @@ def _registered(rec) -> dict:
 
 def _match(db: Path, work: Path, names: list[str], cfg: PosesConfig, report: dict) -> Path | None:
     """Match the chosen pairs into ``db``; returns the vocabulary file (None when every pair was matched)."""
-    from plantsplat.poses import pairs as P
-    from plantsplat.poses.sfm import match_exhaustive, match_pairs
-
     opts = cfg.sfm_options()
     exhaustive = cfg.matcher == "exhaustive" or (cfg.matcher == "auto" and len(names) <= cfg.exhaustive_max_frames)
     report["matcher"] = "exhaustive" if exhaustive else "retrieval"
@@ -169,9 +79,9 @@ def _match(db: Path, work: Path, names: list[str], cfg: PosesConfig, report: dic
         match_exhaustive(db, opts)
         report["pairs"] = len(names) * (len(names) - 1) // 2
         return None
-    vocab = P.build_vocabulary(db, work / "vocabulary.bin", cfg.vocabulary_words, cfg.seed)
-    pairs = sorted(set(P.video_pairs(names, cfg.video_window))
-                   | set(P.retrieval_pairs(db, vocab, cfg.retrieval_neighbours)))
+    vocab = build_vocabulary(db, work / "vocabulary.bin", cfg.vocabulary_words, cfg.seed)
+    pairs = sorted(set(video_pairs(names, cfg.video_window))
+                   | set(retrieval_pairs(db, vocab, cfg.retrieval_neighbours)))
     report["pairs"] = len(pairs)
     log.info("SfM: matching %d pairs (video neighbours and retrieval)", len(pairs))
     match_pairs(db, work, pairs, opts, "main")
@@ -180,15 +90,12 @@ def _match(db: Path, work: Path, names: list[str], cfg: PosesConfig, report: dic
 
 def _extend(rec, db: Path, vocab: Path | None, names: list[str], ws: Workspace, cfg: PosesConfig, report: dict):
     """Frames missing from ``rec``: matched with the registered frames near them, then mapping continues."""
-    from plantsplat.poses import pairs as P
-    from plantsplat.poses.sfm import incremental, match_pairs, write_model
-
-    reg = _registered(rec)
+    reg = registered_images(rec)
     missing = [n for n in names if n not in reg]
     work = ws.root / WORK_DIR
-    extra = set(P.pairs_for_missing(names, rec))
+    extra = set(pairs_for_missing(names, rec, cfg.missing_pair_neighbours))
     if vocab is not None:
-        extra |= set(P.retrieval_pairs(db, vocab, 2 * cfg.retrieval_neighbours, query=missing))
+        extra |= set(retrieval_pairs(db, vocab, 2 * cfg.retrieval_neighbours, query=missing))
     log.info("SfM: %d frames missing: matching %d more pairs around them, continuing the model", len(missing), len(extra))
     match_pairs(db, work, sorted(extra), cfg.sfm_options(), "missing")
     write_model(rec, work / "seed", cfg.colmap_log)
@@ -205,8 +112,6 @@ def _extend(rec, db: Path, vocab: Path | None, names: list[str], ws: Workspace, 
 
 def _map(db: Path, vocab: Path | None, names: list[str], ws: Workspace, cfg: PosesConfig, report: dict, mapper: str):
     """One mapping of the matched pairs in ``db``: the mapper, pieces merged, missing frames matched again."""
-    from plantsplat.poses.sfm import global_then_incremental, incremental, merge_models
-
     work = ws.root / WORK_DIR
     timings = report["timings"]
     t0 = time.perf_counter()
@@ -235,8 +140,6 @@ def _map(db: Path, vocab: Path | None, names: list[str], ws: Workspace, cfg: Pos
 def _fewer_contradictions(errors: dict, other: dict, max_px: float) -> float:
     """How many standard deviations fewer matched pairs model ``other`` contradicts than model ``errors`` (McNemar's
     test on the pairs exactly one of them contradicts; :func:`plantsplat.poses.consistency.pair_errors`)."""
-    from plantsplat.poses.consistency import contradicted
-
     a, b = set(contradicted(errors, max_px)), set(contradicted(other, max_px))
     only_a, only_b = len(a - b), len(b - a)
     return (only_a - only_b) / max(np.sqrt(only_a + only_b), 1.0)
@@ -248,8 +151,6 @@ def _most_consistent(db: Path, vocab: Path | None, names: list[str], times: list
     frames on the cameras' path (:func:`off_path_frames`) as the best, the first, unless another contradicts
     significantly fewer of the matched pairs (:func:`_fewer_contradictions`, :mod:`plantsplat.poses.consistency`).
     The kept model's frames off the path are left out (:func:`leave_out_off_path`)."""
-    from plantsplat.poses.consistency import contradiction, pair_errors
-
     mappers = ["incremental", "global"] if cfg.mapper == "auto" else [cfg.mapper]
     found, off = {}, {}
     for m in mappers:
@@ -277,8 +178,6 @@ def _most_consistent(db: Path, vocab: Path | None, names: list[str], times: list
 def register(ws: Workspace, names: list[str], times: list[float], cfg: PosesConfig, report: dict):
     """SfM on whole frames (no masks, no cube); returns the model (model frame) :func:`_most_consistent` keeps, its
     frames off the camera's path (``times``: the frames' times in the video) left out."""
-    from plantsplat.poses.sfm import extract_features
-
     work = ws.root / WORK_DIR
     timings = report["timings"]
     t0 = time.perf_counter()
@@ -296,12 +195,8 @@ def register(ws: Workspace, names: list[str], times: list[float], cfg: PosesConf
     return rec
 
 
-def _import(ws: Workspace, names: list[str], cfg: PosesConfig, report: dict):
+def import_model(ws: Workspace, names: list[str], cfg: PosesConfig, report: dict):
     """The user's COLMAP model or transforms.json, renamed onto the workspace's frames."""
-    from plantsplat.poses.imports import name_map, rename_images
-    from plantsplat.poses.interop import read_colmap, read_transforms
-    from plantsplat.poses.sfm import colmap_logging
-
     src = Path(cfg.import_colmap or cfg.import_transforms)
     if cfg.import_colmap is not None:
         with colmap_logging(cfg.colmap_log):
@@ -331,12 +226,10 @@ def _import(ws: Workspace, names: list[str], cfg: PosesConfig, report: dict):
 def off_path_frames(rec, names: list[str], times: list[float], cfg: PosesConfig) -> list[str]:
     """The registered frames whose camera looks away from what the cameras circle or leaves the path of its video
     neighbours, alone or as a block (:mod:`plantsplat.poses.checks`)."""
-    from plantsplat.poses.checks import facing_away, off_path, off_path_runs
-    from plantsplat.poses.interop import c2w_opencv
-
-    c2w = {n: c2w_opencv(im) for n, im in _registered(rec).items()}
-    drop = facing_away(c2w)
-    drop += off_path({n: M for n, M in c2w.items() if n not in drop}, names, times, cfg.max_path_deviation)
+    c2w = {n: c2w_opencv(im) for n, im in registered_images(rec).items()}
+    drop = facing_away(c2w, cfg.max_facing_away_deg)
+    drop += off_path({n: M for n, M in c2w.items() if n not in drop}, names, times, cfg.max_path_deviation,
+                     cfg.max_off_path_share)
     drop += off_path_runs({n: M for n, M in c2w.items() if n not in drop}, names, times, cfg.max_path_deviation,
                           max_run=max(4, round(cfg.max_off_path_block * len(names))))
     return drop
@@ -346,13 +239,13 @@ def leave_out_off_path(rec, names: list[str], times: list[float], cfg: PosesConf
                        drop: list[str] | None = None) -> list[str]:
     """Deregister the frames :func:`off_path_frames` finds (``drop``: already found for this model); returns their
     names."""
-    reg = _registered(rec)
+    reg = registered_images(rec)
     drop = off_path_frames(rec, names, times, cfg) if drop is None else drop
     for n in drop:
         rec.deregister_frame(reg[n].frame_id)
     if drop:
-        shown = ", ".join(drop[:10]) + (f" and {len(drop) - 10} more" if len(drop) > 10 else "")
-        log.warning("%d frame(s) left out: their cameras leave the path of their video neighbours (%s)", len(drop), shown)
+        log.warning("%d frame(s) left out: their cameras leave the path of their video neighbours (%s)", len(drop),
+                    shown_names(drop))
         report["events"].append(f"{len(drop)} frame(s) off the camera's path left out")
     report["off_path"] = sorted(set(report.get("off_path", [])) | set(drop))
     return drop
@@ -366,12 +259,10 @@ def _composed(new, old):
     return new
 
 
-def _second_chance(rec, ws: Workspace, names: list[str], times: list[float], cfg: PosesConfig, report: dict) -> None:
+def localize_left_out(rec, ws: Workspace, names: list[str], times: list[float], cfg: PosesConfig, report: dict) -> None:
     """Frames left out so far, localised against the model's points (:mod:`plantsplat.poses.localize`); those
     whose camera then lies on the path of its video neighbours stay."""
-    from plantsplat.poses.localize import add_frames, localize_frames
-
-    missing = [n for n in names if n not in _registered(rec)]
+    missing = [n for n in names if n not in registered_images(rec)]
     if not missing or not rec.num_points3D():
         return
     t0 = time.perf_counter()
@@ -396,12 +287,13 @@ def _leave_out_cube_misses(rec, cal, cfg: PosesConfig, report: dict) -> None:
         if name not in kept:
             worst[name] = min(worst.get(name, np.inf), rms)
     drop = sorted(n for n, e in worst.items() if e > cfg.max_camera_cube_px)
-    reg = _registered(rec)
+    reg = registered_images(rec)
     for n in drop:
         if n in reg:
             rec.deregister_frame(reg[n].frame_id)
     if drop:
-        log.warning("%d frame(s) left out: the cube reprojects far from their own markers (%s)", len(drop), ", ".join(drop[:10]))
+        log.warning("%d frame(s) left out: the cube reprojects far from their own markers (%s)", len(drop),
+                    shown_names(drop))
         report["events"].append(f"{len(drop)} frame(s) whose markers the cube misses left out")
     report["cube_misses"] = drop
 
@@ -410,9 +302,6 @@ def calibrate_model(rec, markers: Markers, cube: CubeSpec, cfg: PosesConfig, sfm
                     order: list[str] | None = None):
     """Move ``rec`` into the cube frame (cm, z up); with ``sfm``, bundle-adjust on the cube's corners. Returns the
     calibration (None without markers). ``order``: the frames in video order, for the scale's uncertainty."""
-    from plantsplat.poses.calibrate import calibrate, refine_with_cube, scale_uncertainty
-    from plantsplat.poses.sfm import MAP_THREADS, colmap_logging
-
     det = markers.frames
     cal = calibrate(rec, det, cube, cfg.max_residual_px) if det else None
     if cal is None:
@@ -438,9 +327,6 @@ def calibrate_model(rec, markers: Markers, cube: CubeSpec, cfg: PosesConfig, sfm
 
 def cube_checks(rec, cal, markers: Markers, cube: CubeSpec, times: dict[str, float], cfg: PosesConfig) -> list[Check]:
     """The cube's checks of a calibrated model: reprojection, scale from both halves of the video, faces' planes."""
-    from plantsplat.poses.calibrate import calibrate
-    from plantsplat.poses.checks import face_offsets
-
     out = [Check("cube_reprojection_px", cal.median_residual_px, cfg.max_residual_px, "<=",
                  f"median over {cal.frames_with_markers} frames with markers"),
            Check("cube_detections_kept", cal.inlier_ratio, 0.5, ">=", "share of marker detections within the limit")]
@@ -452,7 +338,7 @@ def cube_checks(rec, cal, markers: Markers, cube: CubeSpec, times: dict[str, flo
         out.append(Check("cube_scale_halves", float(rel), cfg.max_scale_disagreement, "<=",
                          "relative difference of the cube's scale from the first and second half of the video"))
     pts = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
-    faces = face_offsets(pts, cube)
+    faces = face_offsets(pts, cube, cfg.face_band_cm, cfg.face_margin_cm, cfg.face_min_points)
     if faces:
         worst = max(faces, key=lambda f: abs(faces[f][0]))
         out.append(Check("cube_face_offset_cm", abs(faces[worst][0]), cfg.max_face_offset_cm, "<=",
@@ -463,7 +349,7 @@ def cube_checks(rec, cal, markers: Markers, cube: CubeSpec, times: dict[str, flo
 def model_checks(rec, cal, markers: Markers, cube: CubeSpec, names: list[str], times: list[float],
                  cfg: PosesConfig) -> list[Check]:
     """Every check of the final model (see :mod:`plantsplat.poses.checks`)."""
-    reg = len(_registered(rec))
+    reg = len(registered_images(rec))
     checks = [Check("registered_share", reg / len(names), cfg.min_registered, ">=",
                     f"{reg} of {len(names)} frames registered and on the camera's path"),
               Check("registered_share_all", reg / len(names), cfg.warn_registered, ">=",
@@ -477,132 +363,3 @@ def model_checks(rec, cal, markers: Markers, cube: CubeSpec, names: list[str], t
     return checks
 
 
-def _describe(report: dict, rec, cal, cfg: PosesConfig, names: list[str]) -> None:
-    """The report's calibration, registration and camera entries."""
-    from plantsplat.poses.calibrate import up_vector
-
-    if cal is not None:
-        report.update(scale_source="aruco", similarity=cal.summary(), up_vector_model=up_vector(cal),
-                      marker_residuals_px=cal.frame_residuals_px, units="cm",
-                      cube={"size_cm": cfg.cube_size, "marker_size_cm": cfg.marker_size, "dictionary": cfg.dictionary},
-                      world="cube frame: origin at the centre of the cube's bottom face (ground plane), +z up, centimetres")
-    else:
-        report.update(scale_source="none", units="model units", world="COLMAP model frame (arbitrary scale and orientation)")
-    reg = _registered(rec)
-    report["registered"] = len(reg)
-    report["unregistered"] = [n for n in names if n not in reg]
-    report["mean_reprojection_error_px"] = float(rec.compute_mean_reprojection_error()) if rec.num_points3D() else None
-    report["num_points"] = int(rec.num_points3D())
-    cam = rec.cameras[next(iter(rec.cameras))]
-    report["camera"] = {"model": cam.model.name, "params": list(map(float, cam.params)), "width": cam.width,
-                        "height": cam.height}
-
-
-def _write_outputs(ws: Workspace, rec, cal, report: dict, cfg: PosesConfig) -> None:
-    from plantsplat.poses.interop import (
-        write_colmap,
-        write_points_ply,
-        write_transforms,
-    )
-    from plantsplat.poses.sfm import colmap_logging
-
-    with colmap_logging(cfg.colmap_log):
-        write_colmap(rec, ws.sparse_dir)
-        write_colmap(rec, ws.sparse_text_dir, text=True)
-    write_points_ply(rec, ws.sparse_points_ply)
-    extra = {"ply_file_path": ws.sparse_points_ply.name,
-             "plantsplat": {"units": report["units"], "world": report["world"], "scale_source": report["scale_source"]}}
-    if cal is not None:
-        extra["plantsplat"]["cube_from_model"] = cal.matrix().tolist()
-    write_transforms(rec, ws.transforms_json, mask_prefix=ws.masks_dir.name, extra=extra)
-
-
-def _markers(ws: Workspace, names: list[str], cube: CubeSpec, cfg: PosesConfig, report: dict) -> Markers:
-    from plantsplat.markers import detect_frames, write_markers
-
-    t0 = time.perf_counter()
-    markers = detect_frames(ws.images_dir, names, cube) if cfg.calibrate else Markers(names=list(names))
-    write_markers(ws.markers_json, markers, cube)
-    report["timings"]["detect_markers_s"] = time.perf_counter() - t0
-    report["frames_with_markers"] = len(markers.frames)
-    report["marker_edge_shift_px"] = markers.edge_shift_px
-    return markers
-
-
-def _fail(ws: Workspace, rec, report: dict, failed: list[Check], cfg: PosesConfig) -> PlantsplatError:
-    """Record a model that failed its checks (kept aside for inspection, not written as the output)."""
-    from plantsplat.poses.interop import write_colmap
-    from plantsplat.poses.sfm import colmap_logging
-
-    rejected = ws.root / WORK_DIR / "rejected"
-    with colmap_logging(cfg.colmap_log):
-        write_colmap(rec, rejected)
-    report["status"] = "failed"
-    report["rejected_model"] = str(rejected)
-    write_json_atomic(ws.poses_json, report)
-    what = "; ".join(c.line() for c in failed)
-    return PlantsplatError(
-        f"{ws.images_dir}: the camera model fails its checks ({what}); nothing was written as poses (the model is kept "
-        f"in {rejected} for inspection). Re-take the video more slowly with more overlap, or try --matcher exhaustive",
-        exit_code=EXIT_POSES_FAILED)
-
-
-def estimate_poses(ws: Workspace | str | Path, cfg: PosesConfig | None = None) -> dict:
-    """Run the poses stage on workspace ``ws``; returns the ``poses.json`` report.
-
-    Raises :class:`PlantsplatError` on bad input (too few frames, broken import) and, with exit code 3,
-    when the model fails its checks. Whether the stage needs to run at all is decided by
-    :func:`plantsplat.pipeline.poses_stage`.
-    """
-    from plantsplat.poses.sfm import n_threads_env
-
-    cfg = cfg or PosesConfig()
-    ws = ws if isinstance(ws, Workspace) else Workspace(ws)
-    if cfg.import_colmap is not None and cfg.import_transforms is not None:
-        raise UsageError("pass only one of --import-colmap and --import-transforms")
-    ws.require(ws.images_dir, "frames")
-    names = ws.image_names()
-    if len(names) < MIN_FRAMES:
-        raise PlantsplatError(f"{ws.images_dir}: only {len(names)} frame(s); structure from motion needs at least "
-                              f"{MIN_FRAMES} (the paper uses 100-150); run `plantsplat frames` with more frames")
-    n_threads_env(cfg.num_threads)
-    cube = cfg.cube()
-    t_start = time.perf_counter()
-    report: dict = {"version": POSES_VERSION, "total": len(names), "timings": {}, "events": [],
-                    "camera_model": cfg.camera_model, "source": "sfm"}
-    markers = _markers(ws, names, cube, cfg, report)
-    sfm = cfg.import_colmap is None and cfg.import_transforms is None
-    times = video_times(ws, names)
-    rec = register(ws, names, times, cfg, report) if sfm else _import(ws, names, cfg, report)
-    t0 = time.perf_counter()
-    cal = calibrate_model(rec, markers, cube, cfg, sfm, report, [n for _, n in sorted(zip(times, names))])
-    report["timings"]["calibrate_s"] = time.perf_counter() - t0
-    if sfm and cal is not None:  # the cube's bundle adjustment moves weakly held cameras: judge the path again
-        leave_out_off_path(rec, names, times, cfg, report)
-    if sfm:
-        _second_chance(rec, ws, names, times, cfg, report)
-    if cal is None and cfg.calibrate:
-        log.warning("NO CUBE MARKERS FOUND in %s (dictionary %s): the model is NOT metric and z is not up; traits will "
-                    "be in model units unless the traits stage finds the cube in the point cloud", ws.images_dir,
-                    cube.dictionary)
-        report["events"].append("no markers: unscaled model")
-    checks = model_checks(rec, cal, markers, cube, names, times, cfg)
-    report["checks"] = [c.as_dict() for c in checks]
-    _describe(report, rec, cal, cfg, names)
-    report["timings"]["total_s"] = time.perf_counter() - t_start
-    report["timings"] = {k: round(v, 3) for k, v in report["timings"].items()}
-    failed = [c for c in checks if not c.passed and c.severity == "fail"]
-    if failed:
-        raise _fail(ws, rec, report, failed, cfg)
-    warned = [c for c in checks if not c.passed]
-    report["status"] = "warning" if warned else "ok"
-    for c in warned:
-        log.warning("poses: %s", c.line())
-    _write_outputs(ws, rec, cal, report, cfg)
-    write_json_atomic(ws.poses_json, report)
-    log.info("poses: %d/%d frames registered, reprojection %s px, scale %s", report["registered"], len(names),
-             "n/a" if report["mean_reprojection_error_px"] is None else f"{report['mean_reprojection_error_px']:.2f}",
-             f"from the cube ({cal.median_residual_px:.2f} px marker residual)" if cal else "NONE (model units)")
-    if report["unregistered"]:
-        log.warning("%d frame(s) are left out: %s", len(report["unregistered"]), ", ".join(report["unregistered"][:10]))
-    return report

@@ -36,7 +36,7 @@ def video_pairs(names: list[str], window: int) -> list[tuple[str, str]]:
 
 def build_vocabulary(db: Path, out: Path, words: int, seed: int = 0) -> Path:
     """Learn a visual vocabulary of ``words`` words from a sample of the capture's descriptors; written to ``out``."""
-    import pycolmap
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     rng = np.random.default_rng(seed)
     pycolmap.set_random_seed(seed)  # k-means draws from COLMAP's generator: the same vocabulary on every run
@@ -60,7 +60,7 @@ def build_vocabulary(db: Path, out: Path, words: int, seed: int = 0) -> Path:
 
 def retrieval_pairs(db: Path, vocabulary: Path, neighbours: int, query: list[str] | None = None) -> list[tuple[str, str]]:
     """Each frame (or each frame named in ``query``) with the ``neighbours`` frames most alike in visual words."""
-    import pycolmap
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     opts = pycolmap.VocabTreePairingOptions()
     opts.vocab_tree_path = str(vocabulary)
@@ -77,7 +77,7 @@ def retrieval_pairs(db: Path, vocabulary: Path, neighbours: int, query: list[str
     return sorted({tuple(sorted((ids[a], ids[b]))) for a, b in raw if a != b})
 
 
-def pairs_for_missing(names: list[str], rec, k: int = 12, window: int = 3) -> list[tuple[str, str]]:
+def pairs_for_missing(names: list[str], rec, k: int, window: int = 3) -> list[tuple[str, str]]:
     """Pairs linking each frame missing from model ``rec`` to registered frames that should see the same scene.
 
     For a missing frame, the registered frames closest in video order (up to ``window`` on each side)

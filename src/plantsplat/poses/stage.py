@@ -1,0 +1,192 @@
+"""The poses stage over a workspace: what it reads, what it writes, and :func:`run`.
+
+It reads the frames (``WS/images/``, ``WS/frames.json`` for their times in the video) and, when asked, a user's
+COLMAP model or ``transforms.json``; it writes the model (``WS/sparse/0`` binary, ``WS/sparse_text/0`` text), its
+points (``WS/sparse_points.ply``), nerfstudio's ``WS/transforms.json``, the cube's markers (``WS/markers.json``)
+and the report ``WS/poses.json``. Registration, calibration and the checks are :mod:`plantsplat.poses.estimate`.
+
+1. The cube's markers are detected once (:mod:`plantsplat.markers`, ``WS/markers.json``).
+2. The frames are registered by SfM (:func:`~plantsplat.poses.estimate.register`), or a model is imported.
+3. The cube gives scale, gravity and origin (:func:`~plantsplat.poses.estimate.calibrate_model`); frames off the
+   camera's path are left out, then those left out are localised against the model.
+4. The model is checked (:func:`~plantsplat.poses.estimate.model_checks`). A model that fails a check is not
+   written: the stage stops with a one-line error naming the check (exit code 3).
+
+Usage:
+    from plantsplat.poses import PosesConfig, stage
+    report = stage.run(Workspace("ws/plant_01"), PosesConfig())
+    report["registered"], report["total"], report["scale_source"]
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from plantsplat.checks import Check
+from plantsplat.cube import CubeSpec
+from plantsplat.errors import EXIT_POSES_FAILED, PlantsplatError, UsageError
+from plantsplat.io import read_json, write_json_atomic
+from plantsplat.log import get_logger
+from plantsplat.markers import Markers, detect_frames, write_markers
+from plantsplat.poses.calibrate import up_vector
+from plantsplat.poses.config import MIN_FRAMES, POSES_VERSION, WORK_DIR, PosesConfig
+from plantsplat.poses.estimate import (
+    calibrate_model,
+    import_model,
+    leave_out_off_path,
+    localize_left_out,
+    model_checks,
+    register,
+    registered_images,
+    shown_names,
+)
+from plantsplat.poses.interop import write_colmap, write_points_ply, write_transforms
+from plantsplat.poses.sfm import colmap_logging, n_threads_env
+from plantsplat.workspace import Workspace
+
+log = get_logger(__name__)
+
+
+def inputs(ws: Workspace, cfg: PosesConfig) -> list[Path]:
+    """The files and folders the stage reads: the frames, their record and a model to import (if any)."""
+    imports = [p for p in (cfg.import_colmap, cfg.import_transforms) if p is not None]
+    return [ws.images_dir, ws.frames_json, *imports]
+
+
+def outputs(ws: Workspace) -> list[Path]:
+    """The files and folders the stage writes."""
+    return [ws.sparse_dir, ws.sparse_text_dir, ws.transforms_json, ws.poses_json, ws.sparse_points_ply, ws.markers_json]
+
+
+def video_times(ws: Workspace, names: list[str]) -> list[float]:
+    """Each frame's time in the capture: its source frame number for a video, else its position."""
+    try:
+        info = read_json(ws.frames_json) if ws.frames_json.is_file() else {}
+        src = {f["name"]: f["source_index"] for f in info.get("frames", [])} if info.get("kind") == "video" else {}
+    except (PlantsplatError, KeyError, TypeError, AttributeError):
+        src = {}
+    if all(isinstance(src.get(n), int) for n in names):
+        return [float(src[n]) for n in names]
+    return [float(i) for i in range(len(names))]
+
+
+def run(ws: Workspace | str | Path, cfg: PosesConfig | None = None) -> dict:
+    """Run the poses stage on workspace ``ws``; returns the ``poses.json`` report.
+
+    Usage:
+        report = run(Workspace("ws/plant_01"), PosesConfig())
+        report["registered"], report["total"], report["scale_source"]
+
+    Raises :class:`PlantsplatError` on bad input (too few frames, broken import) and, with exit code 3,
+    when the model fails its checks. Whether the stage needs to run at all is decided by
+    :func:`plantsplat.pipeline.poses_stage`.
+    """
+    cfg = cfg or PosesConfig()
+    ws = ws if isinstance(ws, Workspace) else Workspace(ws)
+    if cfg.import_colmap is not None and cfg.import_transforms is not None:
+        raise UsageError("pass only one of --import-colmap and --import-transforms")
+    ws.require(ws.images_dir, "frames")
+    names = ws.image_names()
+    if len(names) < MIN_FRAMES:
+        raise PlantsplatError(f"{ws.images_dir}: only {len(names)} frame(s); structure from motion needs at least "
+                              f"{MIN_FRAMES} (the paper uses 100-150); run `plantsplat frames` with more frames")
+    n_threads_env(cfg.num_threads)
+    cube = cfg.cube()
+    t_start = time.perf_counter()
+    report: dict = {"version": POSES_VERSION, "total": len(names), "timings": {}, "events": [],
+                    "camera_model": cfg.camera_model, "source": "sfm"}
+    markers = detect_markers(ws, names, cube, cfg, report)
+    sfm = cfg.import_colmap is None and cfg.import_transforms is None
+    times = video_times(ws, names)
+    rec = register(ws, names, times, cfg, report) if sfm else import_model(ws, names, cfg, report)
+    t0 = time.perf_counter()
+    cal = calibrate_model(rec, markers, cube, cfg, sfm, report, [n for _, n in sorted(zip(times, names))])
+    report["timings"]["calibrate_s"] = time.perf_counter() - t0
+    if sfm and cal is not None:  # the cube's bundle adjustment moves weakly held cameras: judge the path again
+        leave_out_off_path(rec, names, times, cfg, report)
+    if sfm:
+        localize_left_out(rec, ws, names, times, cfg, report)
+    if cal is None and cfg.calibrate:
+        log.warning("NO CUBE MARKERS FOUND in %s (dictionary %s): the model is NOT metric and z is not up; traits will "
+                    "be in model units unless the traits stage finds the cube in the point cloud", ws.images_dir,
+                    cube.dictionary)
+        report["events"].append("no markers: unscaled model")
+    checks = model_checks(rec, cal, markers, cube, names, times, cfg)
+    report["checks"] = [c.as_dict() for c in checks]
+    _describe(report, rec, cal, cfg, names)
+    report["timings"]["total_s"] = time.perf_counter() - t_start
+    report["timings"] = {k: round(v, 3) for k, v in report["timings"].items()}
+    failed = [c for c in checks if not c.passed and c.severity == "fail"]
+    if failed:
+        raise _fail(ws, rec, report, failed, cfg)
+    warned = [c for c in checks if not c.passed]
+    report["status"] = "warning" if warned else "ok"
+    for c in warned:
+        log.warning("poses: %s", c.line())
+    write_outputs(ws, rec, cal, report, cfg)
+    write_json_atomic(ws.poses_json, report)
+    log.info("poses: %d/%d frames registered, reprojection %s px, scale %s", report["registered"], len(names),
+             "n/a" if report["mean_reprojection_error_px"] is None else f"{report['mean_reprojection_error_px']:.2f}",
+             f"from the cube ({cal.median_residual_px:.2f} px marker residual)" if cal else "NONE (model units)")
+    if report["unregistered"]:
+        log.warning("%d frame(s) are left out: %s", len(report["unregistered"]), shown_names(report["unregistered"]))
+    return report
+
+
+def _describe(report: dict, rec, cal, cfg: PosesConfig, names: list[str]) -> None:
+    """The report's calibration, registration and camera entries."""
+    if cal is not None:
+        report.update(scale_source="aruco", similarity=cal.summary(), up_vector_model=up_vector(cal),
+                      marker_residuals_px=cal.frame_residuals_px, units="cm",
+                      cube={"size_cm": cfg.cube_size, "marker_size_cm": cfg.marker_size, "dictionary": cfg.dictionary},
+                      world="cube frame: origin at the centre of the cube's bottom face (ground plane), +z up, centimetres")
+    else:
+        report.update(scale_source="none", units="model units", world="COLMAP model frame (arbitrary scale and orientation)")
+    reg = registered_images(rec)
+    report["registered"] = len(reg)
+    report["unregistered"] = [n for n in names if n not in reg]
+    report["mean_reprojection_error_px"] = float(rec.compute_mean_reprojection_error()) if rec.num_points3D() else None
+    report["num_points"] = int(rec.num_points3D())
+    cam = rec.cameras[next(iter(rec.cameras))]
+    report["camera"] = {"model": cam.model.name, "params": list(map(float, cam.params)), "width": cam.width,
+                        "height": cam.height}
+
+
+def write_outputs(ws: Workspace, rec, cal, report: dict, cfg: PosesConfig) -> None:
+    """The model as COLMAP binary and text, its points as a PLY and its cameras as nerfstudio's ``transforms.json``."""
+    with colmap_logging(cfg.colmap_log):
+        write_colmap(rec, ws.sparse_dir)
+        write_colmap(rec, ws.sparse_text_dir, text=True)
+    write_points_ply(rec, ws.sparse_points_ply)
+    extra = {"ply_file_path": ws.sparse_points_ply.name,
+             "plantsplat": {"units": report["units"], "world": report["world"], "scale_source": report["scale_source"]}}
+    if cal is not None:
+        extra["plantsplat"]["cube_from_model"] = cal.matrix().tolist()
+    write_transforms(rec, ws.transforms_json, mask_prefix=ws.masks_dir.name, extra=extra)
+
+
+def detect_markers(ws: Workspace, names: list[str], cube: CubeSpec, cfg: PosesConfig, report: dict) -> Markers:
+    """The cube's markers in every frame (none without ``cfg.calibrate``), written to ``WS/markers.json``."""
+    t0 = time.perf_counter()
+    markers = detect_frames(ws.images_dir, names, cube) if cfg.calibrate else Markers(names=list(names))
+    write_markers(ws.markers_json, markers, cube)
+    report["timings"]["detect_markers_s"] = time.perf_counter() - t0
+    report["frames_with_markers"] = len(markers.frames)
+    report["marker_edge_shift_px"] = markers.edge_shift_px
+    return markers
+
+
+def _fail(ws: Workspace, rec, report: dict, failed: list[Check], cfg: PosesConfig) -> PlantsplatError:
+    """Record a model that failed its checks (kept aside for inspection, not written as the output)."""
+    rejected = ws.root / WORK_DIR / "rejected"
+    with colmap_logging(cfg.colmap_log):
+        write_colmap(rec, rejected)
+    report["status"] = "failed"
+    report["rejected_model"] = str(rejected)
+    write_json_atomic(ws.poses_json, report)
+    what = "; ".join(c.line() for c in failed)
+    return PlantsplatError(
+        f"{ws.images_dir}: the camera model fails its checks ({what}); nothing was written as poses (the model is kept "
+        f"in {rejected} for inspection). Re-take the video more slowly with more overlap, or try --matcher exhaustive",
+        exit_code=EXIT_POSES_FAILED)
