@@ -46,7 +46,8 @@ SEEDS = [211, 212, 213, 214, 216]
 def run_capture(label: str, video: Path, ground_truth: dict, work: Path) -> dict:
     """Frames + poses on one video; the row of scores against its true cameras."""
     from plantsplat.errors import PlantsplatError
-    from plantsplat.frames import FramesConfig, extract_frames
+    from plantsplat.frames import FramesConfig
+    from plantsplat.frames import stage as frames_stage
     from plantsplat.io import read_json
     from plantsplat.poses import PosesConfig
     from plantsplat.poses import stage as poses_stage
@@ -61,7 +62,7 @@ def run_capture(label: str, video: Path, ground_truth: dict, work: Path) -> dict
     from plantsplat.workspace import Workspace
 
     ws = Workspace(work / label)
-    extract_frames(video, ws, FramesConfig(num=120, max_size=960))
+    frames_stage.run(ws, FramesConfig(num=120, max_size=960), video)
     src = {f["name"]: f["source_index"] for f in read_json(ws.frames_json)["frames"]}
     ref = reference_cameras(ground_truth, src)
     t = time.perf_counter()

@@ -122,11 +122,12 @@ def far_from_plant(ws: Workspace, truth: np.ndarray) -> dict:
 
 def prepare(video: Path, ws: Workspace) -> None:
     """Frames and poses as a user runs them (kept from an earlier run of this benchmark)."""
-    from plantsplat.frames import FramesConfig, extract_frames
+    from plantsplat.frames import FramesConfig
+    from plantsplat.frames import stage as frames_stage
     from plantsplat.poses import stage as poses_stage
 
     if not ws.frames_json.is_file():
-        extract_frames(video, ws, FramesConfig(num=120, max_size=960))
+        frames_stage.run(ws, FramesConfig(num=120, max_size=960), video)
     if not ws.poses_json.is_file() or read_json(ws.poses_json).get("status") != "ok":
         poses_stage.run(ws)
 

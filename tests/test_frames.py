@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 from plantsplat.errors import PlantsplatError
-from plantsplat.frames import FramesConfig, extract_frames, sharpness, working_size
+from plantsplat.frames import FramesConfig
+from plantsplat.frames import stage as extraction
+from plantsplat.frames.select import sharpness, working_size
 from plantsplat.pipeline import frames_stage
 from plantsplat.workspace import Workspace
 
@@ -53,7 +55,7 @@ def test_video_rotation_and_spread(tmp_path):
     frames = [_pattern(i, 160, 96) for i in range(30)]
     video = _write_video(tmp_path / "v.mp4", frames, rotation=-90)
     ws = Workspace(tmp_path / "ws")
-    info = extract_frames(video, ws, FramesConfig(num=10, max_size=80))
+    info = extraction.run(ws, FramesConfig(num=10, max_size=80), video)
     assert info["kind"] == "video" and info["rotation"] == 270
     assert info["working_size"] == [48, 80]  # portrait
     names = ws.image_names()
@@ -80,7 +82,7 @@ def test_picks_sharpest_frame_of_each_stretch(tmp_path):
             f = cv2.GaussianBlur(f, (0, 0), 2.5)
         frames.append(f)
     video = _write_video(tmp_path / "v.mp4", frames)
-    info = extract_frames(video, tmp_path / "ws", FramesConfig(num=8, max_size=128))
+    info = extraction.run(tmp_path / "ws", FramesConfig(num=8, max_size=128), video)
     assert [f["source_index"] for f in info["frames"]] == [5 * k + 2 for k in range(8)]
 
 
@@ -92,7 +94,7 @@ def test_drops_blurred_and_duplicate_frames(tmp_path):
     d.mkdir()
     for i, f in enumerate(frames):
         cv2.imwrite(str(d / f"img_{i}.png"), f)
-    info = extract_frames(d, tmp_path / "ws", FramesConfig(num=12, min_frames=4))
+    info = extraction.run(tmp_path / "ws", FramesConfig(num=12, min_frames=4), d)
     kept = [f["source_index"] for f in info["frames"]]
     dropped = {x["source_index"]: x["reason"] for x in info["dropped"]}
     assert 4 not in kept and "blurred" in dropped[4]
@@ -107,12 +109,12 @@ def test_folder_natural_order_unreadable_and_sizes(tmp_path):
     for i in (1, 2, 10):
         cv2.imwrite(str(d / f"p{i}.jpg"), _pattern(i, 64, 48))
     (d / "p3.jpg").write_bytes(b"not a jpeg")
-    info = extract_frames(d, tmp_path / "ws", FramesConfig(num=10, min_frames=2))
+    info = extraction.run(tmp_path / "ws", FramesConfig(num=10, min_frames=2), d)
     assert [f["source_name"] for f in info["frames"]] == ["p1.jpg", "p2.jpg", "p10.jpg"]
     assert info["unreadable"] == ["p3.jpg"]
     cv2.imwrite(str(d / "p11.jpg"), _pattern(11, 48, 64))
     with pytest.raises(PlantsplatError, match="p11.jpg: size 48x64 differs"):
-        extract_frames(d, tmp_path / "ws2", FramesConfig(num=10, min_frames=2))
+        extraction.run(tmp_path / "ws2", FramesConfig(num=10, min_frames=2), d)
 
 
 def test_resume_and_protection(tmp_path):
@@ -152,17 +154,15 @@ def test_input_inside_the_output_is_refused(tmp_path):
 
 def test_interrupted_extraction_leaves_nothing_half_written(tmp_path, monkeypatch, interrupted_after):
     """Ctrl-C while writing images leaves images/ as it was; the same command then finishes (issue 34, case 4)."""
-    import plantsplat.frames as frames_mod
-
     video = _write_video(tmp_path / "v.mp4", [_pattern(i, 64, 64) for i in range(20)])
     ws = Workspace(tmp_path / "ws")
-    real = frames_mod.write_image_atomic
-    monkeypatch.setattr(frames_mod, "write_image_atomic", interrupted_after(real, 4))
+    real = extraction.write_image_atomic
+    monkeypatch.setattr(extraction, "write_image_atomic", interrupted_after(real, 4))
     with pytest.raises(KeyboardInterrupt):
         frames_stage(ws, video, FramesConfig(num=10))
     assert ws.image_names() == [] and not ws.frames_json.exists()
     assert [p.name for p in ws.root.iterdir()] == [".plantsplat"]  # no half-written folder left beside images/
-    monkeypatch.setattr(frames_mod, "write_image_atomic", real)
+    monkeypatch.setattr(extraction, "write_image_atomic", real)
     info = frames_stage(ws, video, FramesConfig(num=10))
     assert len(ws.image_names()) == 10 == len(info["frames"])
 
@@ -170,14 +170,12 @@ def test_interrupted_extraction_leaves_nothing_half_written(tmp_path, monkeypatc
 def test_full_disk_is_said_in_words(tmp_path, monkeypatch):
     import errno
 
-    import plantsplat.frames as frames_mod
-
     video = _write_video(tmp_path / "v.mp4", [_pattern(i, 64, 64) for i in range(20)])
 
     def full(path, img):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(frames_mod, "write_image_atomic", full)
+    monkeypatch.setattr(extraction, "write_image_atomic", full)
     with pytest.raises(PlantsplatError, match="disk is full") as exc:
         frames_stage(Workspace(tmp_path / "ws"), video, FramesConfig(num=10))
     assert "\n" not in str(exc.value)
@@ -201,7 +199,7 @@ def test_bad_input(tmp_path, kind):
     else:
         src, msg = _write_video(tmp_path / "short.mp4", [_pattern(i, 64, 64) for i in range(3)]), "only 3 usable frames"
     with pytest.raises(PlantsplatError, match=msg) as exc:
-        extract_frames(src, ws, FramesConfig(num=10))
+        extraction.run(ws, FramesConfig(num=10), src)
     assert "\n" not in str(exc.value)
     assert not ws.frames_json.exists()
 

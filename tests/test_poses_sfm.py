@@ -143,10 +143,11 @@ def test_foreign_capture_registers_without_masks_or_cube(datasets_dir, tmp_path)
         for i, frame in enumerate(c.decode(video=0)):
             if i in keep:
                 write_image_atomic(folder / f"img_{i:03d}.png", frame.to_ndarray(format="rgb24"))
-    from plantsplat.frames import FramesConfig, extract_frames
+    from plantsplat.frames import FramesConfig
+    from plantsplat.frames import stage as frames_stage
 
     ws = Workspace(tmp_path / "ws")
-    extract_frames(folder, ws, FramesConfig(num=len(keep), max_size=960))
+    frames_stage.run(ws, FramesConfig(num=len(keep), max_size=960), folder)
     names = ws.image_names()
     report = poses_stage.run(ws, PosesConfig(exhaustive_max_frames=0))  # retrieval, as for a full capture
     assert report["matcher"] == "retrieval" and report["status"] == "ok"

@@ -24,7 +24,7 @@ import tyro
 
 from plantsplat import __version__
 from plantsplat.errors import PlantsplatError, UsageError
-from plantsplat.frames import FramesConfig
+from plantsplat.frames.config import FramesConfig
 from plantsplat.io import read_json, write_json_atomic
 from plantsplat.lock import workspace_lock
 from plantsplat.log import get_logger
@@ -65,16 +65,17 @@ class RunConfig:
 
 
 def frames_stage(ws: Workspace, source: Path, cfg: FramesConfig, force: bool = False) -> dict:
-    """Frames from a video or image folder (:func:`plantsplat.frames.extract_frames`)."""
-    from plantsplat.frames import check_not_inside, extract_frames
+    """Frames from a video or image folder (:func:`plantsplat.frames.stage.run`)."""
+    from plantsplat.frames import stage as frame_extraction  # deferred: PyAV is slow to load (the CLI imports this module)
 
     check_options(cfg, "frames")
-    check_not_inside(source, ws)
+    frame_extraction.check_not_inside(source, ws)
     if ws.image_names() and read_record(ws, "frames") is None and not force:
         raise UsageError(f"{ws.images_dir}: holds images this workspace's frames stage did not write; pass --force to "
                          "replace them, or choose another workspace (your images are left as they are)")
-    return run_stage(ws, "frames", {"source": str(Path(source).resolve()), **dataclasses.asdict(cfg)}, [Path(source)],
-                     [ws.images_dir, ws.frames_json], lambda resume: extract_frames(source, ws, cfg), force)
+    return run_stage(ws, "frames", {"source": str(Path(source).resolve()), **dataclasses.asdict(cfg)},
+                     frame_extraction.inputs(ws, source), frame_extraction.outputs(ws),
+                     lambda resume: frame_extraction.run(ws, cfg, source), force)
 
 
 def poses_stage(ws: Workspace, cfg: PosesConfig, force: bool = False) -> dict:

@@ -9,7 +9,9 @@ from typing import Annotated
 import tyro
 
 from plantsplat.commands import Command
-from plantsplat.frames import FramesConfig
+from plantsplat.frames.config import FramesConfig
+from plantsplat.pipeline import frames_stage
+from plantsplat.workspace import Workspace
 
 
 @dataclass
@@ -30,9 +32,6 @@ class FramesCommand:
 
 
 def run(cmd: FramesCommand) -> int:
-    from plantsplat.pipeline import frames_stage
-    from plantsplat.workspace import Workspace
-
     frames_stage(Workspace(cmd.out), cmd.input, cmd.options, cmd.force)
     return 0
 
