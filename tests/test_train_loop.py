@@ -150,14 +150,14 @@ def test_export_round_trip(trained):
     import torch
     from plyfile import PlyData
 
+    from plantsplat.export import ExportConfig
+    from plantsplat.export import stage as model_export
     from plantsplat.pipeline import export_stage
     from plantsplat.ply import read_splat as read_splat_ply
-    from plantsplat.train import export_workspace
     from plantsplat.train.checkpoint import load_model
-    from plantsplat.train.export import ExportConfig
 
     ws, _, _ = trained
-    info = export_workspace(ws)
+    info = model_export.run(ws)
     params, _ = load_model(ws)
     g = read_splat_ply(ws.splat_ply)
     for k in ("means", "scales", "opacities", "sh0", "shN"):
@@ -385,12 +385,12 @@ def test_occluders_from_sfm_points_resume_and_stay_out_of_the_export(synth_captu
     """With SfM points (here: points of the synthetic scene, pot and platform included) object mode
     adds occluders; they survive an interrupted run, are stored beside the model and the export
     holds only the model's own Gaussians."""
+    from plantsplat.export import stage as model_export
     from plantsplat.pipeline import train_stage
     from plantsplat.ply import read_splat as read_splat_ply
     from plantsplat.train import trainer
     from plantsplat.train.checkpoint import load_checkpoint
     from plantsplat.train.data import sparse_points as read_ply_points
-    from plantsplat.train.export import export_workspace
 
     cap = synth_capture()
     ws = synth_workspace(cap, tmp_path / "ws", every=4)
@@ -428,6 +428,6 @@ def test_occluders_from_sfm_points_resume_and_stay_out_of_the_export(synth_captu
     assert s["resumed"] is True and calls["occ"] == n_occ  # the resumed run renders the same occluders
     model = load_checkpoint(ws.train_dir / "model.pt")
     assert 0 < model["extra"]["occluders"]["means"].shape[0] <= n_occ
-    export_workspace(ws)
+    model_export.run(ws)
     g = read_splat_ply(ws.splat_ply)
     assert len(g["means"]) == s["n_gaussians"] == model["params"]["means"].shape[0]

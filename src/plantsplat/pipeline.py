@@ -24,6 +24,7 @@ import tyro
 
 from plantsplat import __version__
 from plantsplat.errors import PlantsplatError, UsageError
+from plantsplat.export.config import ExportConfig
 from plantsplat.frames.config import FramesConfig
 from plantsplat.io import read_json, write_json_atomic
 from plantsplat.lock import workspace_lock
@@ -35,7 +36,6 @@ from plantsplat.resources import StageMeter, machine_info
 from plantsplat.segment.config import SegmentConfig
 from plantsplat.stages import read_record, require_ok, run_stage
 from plantsplat.train.config import TrainConfig
-from plantsplat.train.export import ExportConfig
 from plantsplat.traits.config import TraitsConfig
 from plantsplat.workspace import Workspace
 
@@ -116,14 +116,13 @@ def train_stage(ws: Workspace, cfg: TrainConfig, force: bool = False) -> dict:
 
 
 def export_stage(ws: Workspace, cfg: ExportConfig, force: bool = False) -> dict:
-    """The 3DGS PLY and the point cloud (:func:`plantsplat.train.export_workspace`)."""
-    from plantsplat.train import export_workspace
-    from plantsplat.train.checkpoint import model_path
+    """The 3DGS PLY and the point cloud (:func:`plantsplat.export.stage.run`)."""
+    from plantsplat.export import stage as model_export  # deferred: it loads torch
 
     check_options(cfg, "export")
     require_ok(ws, "train")
-    return run_stage(ws, "export", cfg, [model_path(ws, cfg.train_dir)], [ws.splat_ply, ws.points_ply],
-                     lambda resume: export_workspace(ws, cfg), force)
+    return run_stage(ws, "export", cfg, model_export.inputs(ws, cfg), model_export.outputs(ws),
+                     lambda resume: model_export.run(ws, cfg), force)
 
 
 def traits_stage(ws: Workspace, cfg: TraitsConfig, force: bool = False, points: Path | None = None,

@@ -9,7 +9,9 @@ from typing import Annotated
 import tyro
 
 from plantsplat.commands import Command
-from plantsplat.train.export import ExportConfig
+from plantsplat.export.config import ExportConfig
+from plantsplat.pipeline import export_stage
+from plantsplat.workspace import Workspace
 
 
 @dataclass
@@ -25,9 +27,6 @@ class ExportCommand:
 
 
 def run(cfg: ExportCommand) -> int:
-    from plantsplat.pipeline import export_stage
-    from plantsplat.workspace import Workspace
-
     export_stage(Workspace(cfg.workspace, must_exist=True), cfg.export, cfg.force)
     return 0
 

@@ -1,4 +1,5 @@
-"""Export a trained model: Inria-layout 3DGS PLY and a point cloud of opacity-filtered centres.
+"""The export stage over a workspace: what it reads (the trained model, ``WS/train/model.pt``), what it writes, and
+:func:`run`: an Inria-layout 3DGS PLY and a point cloud of opacity-filtered centres.
 
 ``export/splat.ply`` (binary little-endian, readable by the usual splat viewers and the Inria code):
 ``x y z nx ny nz f_dc_0..2 f_rest_0..M opacity scale_0..2 rot_0..3`` as float32, with opacity as a
@@ -10,45 +11,48 @@ uchar (the DC colour), ``opacity`` float (0..1), ``scale_0..2`` float (cm). Coor
 workspace's calibrated frame (cm, z up).
 
 Usage:
-    files = export_workspace(Workspace("ws/plant_01"))
-    g = read_splat("ws/plant_01/export/splat.ply")
-    g["means"].shape
+    from plantsplat.export import ExportConfig, stage
+    files = stage.run(Workspace("ws/plant_01"), ExportConfig())
+    files["n_gaussians"], files["n_points"]
 """
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from plantsplat.errors import PlantsplatError
+from plantsplat.export.config import ExportConfig
 from plantsplat.log import get_logger
+from plantsplat.ply import write_point_cloud, write_splat
+from plantsplat.train.checkpoint import load_model, model_path
+from plantsplat.train.model import SH_C0
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
 
 
-@dataclass
-class ExportConfig:
-    """Options of ``plantsplat export``."""
-
-    min_opacity: float = 0.1
-    """Centres with a lower opacity are left out of points.ply (the paper's culling threshold)."""
-    train_dir: Path | None = None
-    """Folder of the trained model (default WS/train)."""
+def inputs(ws: Workspace, cfg: ExportConfig) -> list[Path]:
+    """The file the stage reads: the trained model (``cfg.train_dir`` or ``WS/train``)."""
+    return [model_path(ws, cfg.train_dir)]
 
 
-def export_workspace(ws: Workspace | str | os.PathLike, cfg: ExportConfig | None = None) -> dict:
-    """Write ``export/splat.ply`` and ``export/points.ply`` (each atomically) from ``train/model.pt``;
-    returns paths and counts."""
-    import torch
+def outputs(ws: Workspace) -> list[Path]:
+    """The files the stage writes."""
+    return [ws.splat_ply, ws.points_ply]
 
-    from plantsplat.ply import write_point_cloud, write_splat
-    from plantsplat.train.checkpoint import load_model
-    from plantsplat.train.model import SH_C0
 
+def run(ws: Workspace | str | os.PathLike, cfg: ExportConfig | None = None) -> dict:
+    """Run the export stage: write ``export/splat.ply`` and ``export/points.ply`` (each atomically) from the trained
+    model; returns paths and counts.
+
+    Usage:
+        files = run(Workspace("ws/plant_01"), ExportConfig(min_opacity=0.2))
+        files["points_ply"], files["n_points"]
+    """
     ws = ws if isinstance(ws, Workspace) else Workspace(ws)
     cfg = cfg or ExportConfig()
     if not 0.0 <= cfg.min_opacity < 1.0:

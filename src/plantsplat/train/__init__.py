@@ -1,15 +1,16 @@
-"""Object-centric 3D Gaussian Splatting: data, model, density control, training loop, metrics, export.
+"""Object-centric 3D Gaussian Splatting: data, model, density control, training loop, metrics.
 
 Library API (each call does its work; :mod:`plantsplat.pipeline` decides when a stage needs to run):
 
-    from plantsplat.train import TrainConfig, train_workspace, export_workspace
+    from plantsplat.train import TrainConfig, train_workspace
     summary = train_workspace("ws/plant_01", TrainConfig(mode="object"))
-    files = export_workspace("ws/plant_01")
+
+The trained model is exported by its own stage, :mod:`plantsplat.export`.
 
 Submodules: ``config`` (options, presets), ``data`` (cameras, frames, split, initial points),
 ``model`` (parameters), ``checkpoint`` (checkpoints, the finished model), ``render`` (rendering, image
 cache), ``loss``, ``strategy`` (density control), ``trainer`` (the loop),
-``evaluate`` and ``metrics`` (PSNR/SSIM/LPIPS), ``export`` (PLY), ``romi`` (ROMI importer).
+``evaluate`` and ``metrics`` (PSNR/SSIM/LPIPS), ``romi`` (ROMI importer).
 Heavy libraries load on first use, so importing the package stays cheap.
 """
 
@@ -25,14 +26,6 @@ def train_workspace(ws, cfg: TrainConfig | None = None, resume: bool = False) ->
     return _train(ws, cfg, resume)
 
 
-def export_workspace(ws, cfg=None) -> dict:
-    """Write ``export/splat.ply`` and ``export/points.ply``; see :mod:`plantsplat.train.export`."""
-    from plantsplat.train.export import ExportConfig
-    from plantsplat.train.export import export_workspace as _export
-
-    return _export(ws, cfg or ExportConfig())
-
-
 def evaluate_workspace(ws, **kwargs) -> dict:
     """Image metrics on the test views; see :func:`plantsplat.train.evaluate.evaluate_workspace`."""
     from plantsplat.train.evaluate import evaluate_workspace as _eval
@@ -40,4 +33,4 @@ def evaluate_workspace(ws, **kwargs) -> dict:
     return _eval(ws, **kwargs)
 
 
-__all__ = ["TrainConfig", "train_workspace", "export_workspace", "evaluate_workspace"]
+__all__ = ["TrainConfig", "train_workspace", "evaluate_workspace"]
