@@ -27,6 +27,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from plantsplat.cube import CubeSpec
 from plantsplat.log import get_logger
@@ -58,7 +60,7 @@ class Calibration:
         return M
 
     def to_pycolmap(self):
-        import pycolmap
+        import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
         return pycolmap.Sim3d(self.scale, pycolmap.Rotation3d(self.R), self.t.reshape(3, 1))
 
@@ -111,7 +113,7 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.nda
 def _triangulate_corners(obs, cams, cube: CubeSpec):
     """Each marker corner seen in >= 2 frames triangulated in the model. Returns ``(model_pts, cube_pts)``
     ``[P, 3]`` pairs (None when fewer than four)."""
-    import pycolmap
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     tri_opts = pycolmap.EstimateTriangulationOptions()
     tri_opts.residual_type = pycolmap.TriangulationResidualType.REPROJECTION_ERROR
@@ -143,7 +145,7 @@ def _triangulate_corners(obs, cams, cube: CubeSpec):
 def _robust_similarity(model_pts: np.ndarray, cube_pts: np.ndarray, cube: CubeSpec):
     """Similarity model -> cube by RANSAC (threshold in centimetres, the cube's units), refitted on its
     inliers. Returns ``(s, R, t, geometric_ok)``: ok when the triangulated corners do form the cube."""
-    import pycolmap
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     ransac = pycolmap.RANSACOptions()
     ransac.max_error = 0.05 * cube.size
@@ -176,8 +178,6 @@ class _CubeReprojection:
         self.X = {mid: cube.marker_corners(mid) for mid in {m for _, m, _ in obs}}
 
     def residuals(self, p, use):
-        from scipy.spatial.transform import Rotation
-
         R = Rotation.from_rotvec(p[:3]).as_matrix()
         s = np.exp(p[6])
         out = []
@@ -195,7 +195,6 @@ class _CubeReprojection:
 
     def refine(self, p, max_residual_px: float):
         """Huber least squares, detections far above the median residual left out, up to three times."""
-        from scipy.optimize import least_squares
 
         use = np.ones(len(self.obs), dtype=bool)
         for _ in range(3):
@@ -213,8 +212,6 @@ class _CubeReprojection:
 
 def _params(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """``model_from_cube`` parameters for the similarity cube_from_model ``(s, R, t)``."""
-    from scipy.spatial.transform import Rotation
-
     sm, Rm = 1.0 / s, R.T
     return np.concatenate([Rotation.from_matrix(Rm).as_rotvec(), -sm * Rm @ t, [np.log(sm)]])
 
@@ -235,8 +232,6 @@ def calibrate(
     corner can be triangulated consistently. ``consistent`` is False when the cube does not
     reproject onto its detections in most frames (a wrong or badly split model).
     """
-    from scipy.spatial.transform import Rotation
-
     cams = _cam_matrices(rec, list(detections))
     obs = [(n, mid, c) for n, d in detections.items() if n in cams for mid, c in d.items()]
     frames = {n for n, _, _ in obs}
@@ -325,7 +320,7 @@ def refine_with_cube(rec, detections: dict, cal: Calibration, cube: CubeSpec = C
     are used too (for a model warped as a whole, whose residuals exceed the detections' own error).
     Returns the number of control points added (0: nothing done).
     """
-    import pycolmap
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     rejected = {(n, m) for n, m, r in cal.detections_rejected if within_px is None or r > within_px}
     by_name = {im.name: im for im in rec.images.values() if im.has_pose}

@@ -18,9 +18,12 @@ Example:
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from plantsplat.poses.calibrate import umeyama
+from plantsplat.poses.interop import OPENCV_TO_OPENGL, c2w_opencv, registered_images
 
 
 def _stats(x: np.ndarray) -> dict:
@@ -63,17 +66,11 @@ def compare_poses(est: dict[str, np.ndarray], ref: dict[str, np.ndarray]) -> dic
 
 def model_c2w(rec) -> dict[str, np.ndarray]:
     """``{name: camera-to-world 4x4}`` (OpenCV axes) of the registered images of a pycolmap model."""
-    from plantsplat.poses.interop import c2w_opencv, registered_images
-
     return {im.name: c2w_opencv(im) for im in registered_images(rec)}
 
 
 def transforms_c2w(data: dict) -> dict[str, np.ndarray]:
     """``{file name: camera-to-world 4x4}`` (OpenCV axes) from a nerfstudio transforms dict."""
-    from pathlib import Path
-
-    from plantsplat.poses.interop import OPENCV_TO_OPENGL
-
     return {
         Path(f["file_path"]).name: np.asarray(f["transform_matrix"], dtype=np.float64) @ OPENCV_TO_OPENGL
         for f in data["frames"]
@@ -157,8 +154,6 @@ def synth_reference(ground_truth: dict) -> dict[str, np.ndarray]:
     ``ground_truth.json`` stores ``c2w`` in the synth world (origin below the pot); the cube stands at
     ``cube.T_world_cube``, so the reference in the cube frame is ``inv(T_world_cube) @ c2w``.
     """
-    from pathlib import Path
-
     T_cube_world = np.linalg.inv(np.asarray(ground_truth["cube"]["T_world_cube"], dtype=np.float64))
     out = {}
     for f in ground_truth["frames"]:

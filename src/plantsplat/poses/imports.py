@@ -38,7 +38,7 @@ def name_map(ws: Workspace, model_names: list[str], names: list[str]) -> dict[st
 
 def rename_images(rec, mapping: dict[str, str]):
     """A copy of ``rec`` keeping only the posed images in ``mapping``, renamed to workspace names (no points)."""
-    import pycolmap
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     cam_ids = {im.camera_id for im in rec.images.values() if im.has_pose and im.name in mapping}
     if len(cam_ids) != 1:

@@ -21,6 +21,7 @@ import numpy as np
 
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_json, staged_dir, write_json_atomic
+from plantsplat.ply import write_point_cloud
 
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -85,7 +86,7 @@ def read_colmap(path: Path):
 
     ``path`` may be the model folder itself (``sparse/0``) or a parent holding ``0/`` or ``sparse/0``.
     """
-    import pycolmap
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     path = Path(path)
     if not path.exists():
@@ -164,7 +165,7 @@ def read_transforms(path: Path, image_names: list[str] | None = None):
     Frames are matched to ``image_names`` (the workspace images) by file name; with ``image_names``
     None every frame is kept. Per-frame intrinsics are not supported (one shared camera).
     """
-    import pycolmap
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     path = Path(path)
     data = read_json(path)
@@ -221,8 +222,6 @@ def read_transforms(path: Path, image_names: list[str] | None = None):
 
 def write_points_ply(rec, path: Path) -> int:
     """Write the model's 3D points as a binary PLY (x, y, z float, red, green, blue uchar); returns the count."""
-    from plantsplat.ply import write_point_cloud
-
     pts = list(rec.points3D.values())
     xyz = np.array([p.xyz for p in pts]).reshape(-1, 3)  # [N, 3]
     rgb = np.array([p.color for p in pts]).reshape(-1, 3)  # [N, 3]

@@ -21,6 +21,8 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from plantsplat.errors import PlantsplatError
 from plantsplat.log import get_logger
 
@@ -61,7 +63,7 @@ def colmap_logging(verbose: bool):
     because some pycolmap calls (bundle adjustment) print their reports regardless of the level.
     Do not log from inside this block: it would be swallowed too.
     """
-    import pycolmap
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     if verbose:
         yield
@@ -87,7 +89,7 @@ def colmap_logging(verbose: bool):
 
 def extract_features(image_dir: Path, names: list[str], work_dir: Path, opts: SfmConfig) -> Path:
     """SIFT features of ``names`` (one shared camera) into ``work_dir/database.db``, rebuilt from scratch."""
-    import pycolmap
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     if opts.camera_model not in CAMERA_MODELS:
         raise PlantsplatError(f"--camera-model {opts.camera_model!r}: use one of {', '.join(CAMERA_MODELS)}", exit_code=2)
@@ -117,7 +119,7 @@ def extract_features(image_dir: Path, names: list[str], work_dir: Path, opts: Sf
 
 def _matching_options(opts: SfmConfig):
     """pycolmap's matching and two-view verification options for ``opts`` (one thread, seeded RANSAC)."""
-    import pycolmap
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     mopts = pycolmap.FeatureMatchingOptions()
     mopts.num_threads = MATCH_THREADS
@@ -130,7 +132,7 @@ def _matching_options(opts: SfmConfig):
 
 def match_pairs(db: Path, work_dir: Path, pairs: list[tuple[str, str]], opts: SfmConfig, tag: str) -> None:
     """Match and verify image ``pairs`` (names) into ``db``; pairs matched before are skipped by COLMAP."""
-    import pycolmap
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     if not pairs:
         return
@@ -146,7 +148,7 @@ def match_pairs(db: Path, work_dir: Path, pairs: list[tuple[str, str]], opts: Sf
 
 def match_exhaustive(db: Path, opts: SfmConfig) -> None:
     """Match and verify every pair of frames in ``db``."""
-    import pycolmap
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     mopts, verif = _matching_options(opts)
     with colmap_logging(opts.verbose):
@@ -161,7 +163,7 @@ def _fresh(out_dir: Path) -> None:
 
 def incremental(db: Path, image_dir: Path, out_dir: Path, opts: SfmConfig, input_path: Path | None = None) -> list:
     """COLMAP incremental mapping (continuing the model at ``input_path`` if given); models found, largest first."""
-    import pycolmap
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     _fresh(out_dir)
     o = pycolmap.IncrementalPipelineOptions()
@@ -181,7 +183,7 @@ def incremental(db: Path, image_dir: Path, out_dir: Path, opts: SfmConfig, input
 
 def global_mapping(db: Path, image_dir: Path, out_dir: Path, opts: SfmConfig) -> list:
     """GLOMAP-style global mapping (rotation averaging, global positioning, bundle adjustment); largest first."""
-    import pycolmap
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     _fresh(out_dir)
     o = pycolmap.GlobalPipelineOptions()
@@ -230,7 +232,7 @@ def merge_models(models: list, db: Path, image_dir: Path, work_dir: Path, opts: 
     aligned onto it by the reprojections of their common points (COLMAP's model alignment), its other frames
     join, then every match is triangulated again and the whole is bundle-adjusted. Returns the merged model,
     or None when no piece could be aligned."""
-    import pycolmap
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     base = models[0]
     poses = {im.name: im.cam_from_world() for im in base.images.values() if im.has_pose}
@@ -257,8 +259,7 @@ def merge_models(models: list, db: Path, image_dir: Path, work_dir: Path, opts: 
 def retriangulate(like, poses: dict, db: Path, image_dir: Path, work_dir: Path, opts: SfmConfig):
     """A model of the frames in ``poses`` (name -> cam_from_world) with the camera of ``like``: every match in
     ``db`` triangulated, then a bundle adjustment of poses, points and intrinsics."""
-    import numpy as np
-    import pycolmap
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     with pycolmap.Database.open(str(db)) as d:
         ids = {im.name: im.image_id for im in d.read_all_images()}
