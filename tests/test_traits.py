@@ -514,6 +514,29 @@ def test_hanging_unripe_fruit_join_the_plant_but_pale_objects_do_not():
     assert not any(tuple(p) in got_off for p in unripe.round(6))
 
 
+def test_nothing_under_the_ground_or_in_the_cube_is_plant():
+    """Issue 40 (foreign render 101, 2026-11-27): a blob of Gaussians wholly below the ground, and the ends of the
+    cube's Gaussians reaching out of its box, were measured as plant (width 2 +42 %). Neither is plant."""
+    from plantsplat.ply import gaussian_extent_points
+
+    pts, cols, plant = make_plant_scene(seed=5, floaters=False)
+    rng = np.random.default_rng(5)
+    under = rng.uniform([-10.0, -2.0, -1.4], [-8.0, 0.0, -0.2], (300, 3))  # beside the cube, below the ground
+    edge = np.stack([np.full(120, -4.9), np.linspace(-4.0, 4.0, 120), np.full(120, 0.2)], 1)  # the cube's bottom edge
+    centres = np.concatenate([pts, under, edge])
+    scales = np.full((len(centres), 3), 0.02)
+    scales[-len(edge):, 0] = 1.5  # long Gaussians across the edge: their ends reach 3 cm out of the cube's box
+    cloud = gaussian_extent_points(centres, scales, np.tile([1.0, 0, 0, 0], (len(centres), 1)), 2.0)
+    colours = np.tile(np.concatenate([cols, np.full((len(under) + len(edge), 3), 90, np.uint8)]), (7, 1))
+    centre = np.zeros(len(cloud), bool)
+    centre[: len(centres)] = True
+    res = measure_traits(cloud, colours, calibrated=True, centre_mask=centre)
+    assert res.plant_points[:, 2].min() >= pts[plant, 2].min() - 0.2
+    assert res.plant_points[:, 0].min() >= pts[plant, 0].min() - 0.2
+    assert res.traits["width2_cm"] == pytest.approx(measure_traits(pts, cols, calibrated=True).traits["width2_cm"],
+                                                    rel=0.03)
+
+
 def test_height_is_measured_from_the_soil():
     """A ruler on the soil: fruit hanging over the rim do not change the height; the paper's extent is kept."""
     pts, cols, plant = make_plant_scene(seed=3, floaters=False)

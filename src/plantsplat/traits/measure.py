@@ -69,7 +69,17 @@ def _filter_cloud(points, colors, opacity, scales, centre_mask, s: TraitsConfig,
     cols = None if cols is None else cols[keep].astype(np.uint8)
     is_centre = np.ones(len(pts), bool) if centre_mask is None else np.asarray(centre_mask, bool)[keep]
     filt = {"input_points": n_in, "non_finite": n_nonfinite, "kept_points": int(len(pts))}
-    return pts, cols, is_centre, filt
+    return pts, cols, is_centre, _gaussian_of(centre_mask, n_in)[keep], filt
+
+
+def _gaussian_of(centre_mask, n: int) -> np.ndarray:
+    """``[n]`` the Gaussian each point belongs to: the extent samples of :func:`plantsplat.ply.gaussian_extent_points`
+    come in blocks of the Gaussians' count, the centres first; any other cloud, each point its own."""
+    m = None if centre_mask is None else np.asarray(centre_mask, bool)
+    k = 0 if m is None else int(m.sum())
+    if k and n % k == 0 and m[:k].all():
+        return np.arange(n) % k
+    return np.arange(n)
 
 
 def _cluster_and_find_cube(pts, is_centre, centre_mask, s: TraitsConfig, calibrated: bool, size: float,
@@ -155,28 +165,35 @@ def _check_cube_axes(cube_fit, scale: dict, calibrated: bool, reasons: list[str]
 
 
 def _clusters_below_ground(pts_cm, labels, excl: set) -> list[int]:
+    """Clusters under the ground plane (z = 0): wholly below it, or nine tenths of them more than a cm below (the
+    Gaussians' ends reach a little under what they draw). Nothing of the plant grows under the ground."""
     below = []
     for i in range(int(labels.max() + 1)):
         if i in excl:
             continue
         zi = pts_cm[labels == i, 2]
-        if len(zi) and np.quantile(zi, 0.9) < -1.0:
+        if len(zi) and (zi.max() < 0.0 or np.quantile(zi, 0.9) < -1.0):
             below.append(i)
     return below
 
 
-def _drop_aruco_box(pts_cm, labels, size: float, notes: list[str], clusters_info: dict):
-    """No cube cluster was recognised (a reconstruction too rough for the box test, or the cube fused with
-    the plant), but the ArUco calibration puts the cube exactly at the frame's origin, edges along x and y:
-    its points are left out before the plant is chosen."""
+def _drop_aruco_box(pts_cm, labels, gaussian: np.ndarray, cube_label: int | None, size: float, notes: list[str],
+                    clusters_info: dict):
+    """The ArUco calibration puts the cube exactly at the frame's origin, edges along x and y, and nothing of the plant
+    is inside it: the points in its box (grown by half a cm) are left out, with every extent sample of a Gaussian
+    whose centre is there (``gaussian [N]``: each point's Gaussian), before the plant is chosen. It catches what the
+    cube's cluster missed: a reconstruction too rough for the box test, the cube fused with the plant, pieces of its
+    faces in clusters of their own, and its Gaussians' ends reaching out of the box."""
     h = size / 2 + 0.5
     in_cube = ((np.abs(pts_cm[:, 0]) < h) & (np.abs(pts_cm[:, 1]) < h)
                & (pts_cm[:, 2] > -0.5) & (pts_cm[:, 2] < size + 0.5))
+    in_cube |= np.isin(gaussian, gaussian[in_cube])
+    in_cube &= (labels >= 0) & (labels != (-1 if cube_label is None else cube_label))  # the cube's cluster: out
     if not in_cube.any():
         return labels
     labels = labels.copy()
     labels[in_cube] = -1
-    notes.append(f"{int(in_cube.sum())} points inside the ArUco cube's known box were left out")
+    notes.append(f"{int(in_cube.sum())} points of Gaussians inside the ArUco cube's known box were left out")
     clusters_info["points_in_aruco_cube_box"] = int(in_cube.sum())
     return labels
 
@@ -257,7 +274,7 @@ def measure_traits(
     size = cube_edge_cm(s, cube)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    pts, cols, is_centre, filt = _filter_cloud(points, colors, opacity, scales, centre_mask, s, calibrated)
+    pts, cols, is_centre, gaussian, filt = _filter_cloud(points, colors, opacity, scales, centre_mask, s, calibrated)
     if len(pts) < 100:
         return failed_result(
             f"the point cloud is empty ({len(pts)} of {filt['input_points']} points left after filtering; need at "
@@ -303,13 +320,13 @@ def measure_traits(
 
     t2 = time.perf_counter()
     excl = set() if cube_label is None else {cube_label}
+    if calibrated:  # first: a piece of the cube may hold a cluster up above the ground
+        labels = _drop_aruco_box(pts_cm, labels, gaussian, cube_label, size, notes, clusters_info)
     below = _clusters_below_ground(pts_cm, labels, excl)
     excl |= set(below)
     if below:
         notes.append(f"{len(below)} cluster(s) below the ground plane left out")
         clusters_info["below_ground"] = below
-    if calibrated and cube_fit is None:
-        labels = _drop_aruco_box(pts_cm, labels, size, notes, clusters_info)
     sel = select_plant(pts_cm, labels, exclude=excl, merge_distance=s.merge_distance_cm,
                        min_cluster_fraction=s.min_cluster_fraction, min_cluster_points=s.min_points)
     if sel is None:
