@@ -61,8 +61,10 @@ class QualityThresholds:
     """fail: a plant shorter than this many cube edges (3 cm) is not what was filmed."""
     height_interval_warn: float = 0.05
     """warn: the height's bounds (the soil's interval and the scale's error) span more than this share of it."""
-    height_interval_fail: float = 0.10
-    """fail: they span more than this share of it (its middle could then be more than 5 % off)."""
+    base_into_pot_cm: float = 0.5
+    """fail: where the soil was not seen, the plant reaches less than this far below the pot's rim (one slab of the
+    pot finder): its base, which stands on the soil, was not found, so the height from its lowest point rests on
+    nothing but that point."""
 
 
 def soil_level(ws, calibrated: bool) -> tuple[float | None, str, tuple | None]:
@@ -144,19 +146,22 @@ def stage_checks(ws, t: QualityThresholds = QualityThresholds()) -> list[Check]:
 
 def result_checks(traits: dict, plant_points: int, plant_top_cm: float | None, camera_top_cm: float | None,
                   cube_cm: float, t: QualityThresholds = QualityThresholds(),
-                  height_bounds: tuple[float, float] | None = None, soil_how: str = "") -> list[Check]:
+                  height_bounds: tuple[float, float] | None = None, soil=None) -> list[Check]:
     """Checks of the measurement itself (see the module docstring); heights in the calibrated frame (cm);
     ``cube_cm``: the edge of the cube the poses stage measured with. ``height_bounds``: the height's bounds
-    (:mod:`plantsplat.traits.height`), found independently of the height itself; ``soil_how``: how the soil was
-    bounded."""
+    (:mod:`plantsplat.traits.height`), found independently of the height itself; ``soil``: the soil's
+    :class:`~plantsplat.traits.height.SoilInterval` (None: no pot, the height is the plant's extent)."""
     out = [Check("plant_points", plant_points, t.plant_points, ">=", "points on the plant after clustering")]
     h = traits.get("height_cm")
     if height_bounds is not None and h:
         share = (height_bounds[1] - height_bounds[0]) / h
         what = (f"the height's bounds {height_bounds[0]:.1f}-{height_bounds[1]:.1f} cm against the height "
-                f"(soil {soil_how or 'none: the extent'})")
-        out.append(Check("height_interval_share", share, t.height_interval_fail, "<=", what))
-        out.append(Check("height_interval_share_warn", share, t.height_interval_warn, "<=", what, severity="warn"))
+                f"(soil {'none: the extent' if soil is None else soil.how})")
+        out.append(Check("height_interval_share", share, t.height_interval_warn, "<=", what, severity="warn"))
+    if soil is not None and soil.into_pot is not None:
+        out.append(Check("plant_base_into_pot_cm", soil.into_pot, t.base_into_pot_cm, ">=",
+                         "soil not seen: how far the plant's lowest point reaches below the pot's rim (its base "
+                         "stands on the soil; a plant that does not reach into the pot lost its base)"))
     h = traits.get("height_cm")
     if h is not None:
         out.append(Check("plant_height_cm", h, t.plant_height_cube_edges * cube_cm, ">=", "against the cube's size"))

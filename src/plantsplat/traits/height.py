@@ -7,6 +7,8 @@ no higher than the plant's lowest point over the pot's inside (nothing of the pl
 soil), and no lower than the ground the pot stands on. The height the traits give is measured from
 the highest soil those allow (the shortest height the evidence permits); its bounds are the top of
 the plant above both ends of the interval, each widened by two standard errors of the cube's scale.
+A plant whose base was found in the pot (below its rim) has that base on the soil; one that does not
+reach into the pot lost its base, and its height is not given as usable (:mod:`plantsplat.traits.checks`).
 
 Example:
     >>> b = height_bounds(top_z=30.0, soil=SoilInterval(9.75, 10.25, "seen"), scale_se=0.002)
@@ -21,11 +23,13 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class SoilInterval:
-    """Where the soil can lie (cm, cube frame): from ``low`` to ``high``; ``how`` it was bounded."""
+    """Where the soil can lie (cm, cube frame): from ``low`` to ``high``; ``how`` it was bounded; for soil not seen,
+    how far the plant reaches below the rim into the pot (``into_pot``, cm; None where it was seen)."""
 
     low: float
     high: float
     how: str
+    into_pot: float | None = None
 
 
 def soil_interval(soil_z: float, seen: bool, resolution_cm: float, lowest_inside: float | None) -> SoilInterval:
@@ -34,7 +38,8 @@ def soil_interval(soil_z: float, seen: bool, resolution_cm: float, lowest_inside
     if seen:
         return SoilInterval(soil_z - resolution_cm / 2, soil_z + resolution_cm / 2, "seen")
     high = soil_z if lowest_inside is None else min(soil_z, lowest_inside)
-    return SoilInterval(0.0, max(high, 0.0), "not seen: between the ground and the plant's lowest point in the pot")
+    return SoilInterval(0.0, max(high, 0.0), "not seen: between the ground and the plant's lowest point in the pot",
+                        into_pot=soil_z - high)
 
 
 def height_bounds(top_z: float, soil: SoilInterval | None, scale_se: float | None, extent: float | None = None

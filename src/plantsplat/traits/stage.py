@@ -186,7 +186,7 @@ def _judge(out: dict, res: TraitResult, ws, cams: np.ndarray | None, soil, cube_
         top = float(res.plant_points[:, 2].max())
         checks += result_checks(res.traits, len(res.plant_points), top if cams is not None else None,
                                 None if cams is None else float(cams[:, 2].max()), cube_cm,
-                                height_bounds=out.get("height_bounds_cm"), soil_how="" if soil is None else soil.how)
+                                height_bounds=out.get("height_bounds_cm"), soil=soil)
     out["checks"] = [c.as_dict() for c in checks]
     verdict = quality(checks)
     order = ["ok", "warning", "failed"]
