@@ -63,7 +63,8 @@ def main(argv=None) -> int:
         find_chromium,
         playwright_available,
     )
-    from plantsplat.report.testing import make_synthetic_workspace
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the tests' synthetic workspaces
+    from report_workspace import make_synthetic_workspace
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--gaussians", type=int, default=50_000)

@@ -9,6 +9,11 @@ import re
 
 import numpy as np
 import pytest
+from report_workspace import (
+    make_synthetic_workspace,
+    synthetic_gaussians,
+    write_inria_ply,
+)
 
 from plantsplat.cli import main as cli_main
 from plantsplat.errors import PlantsplatError
@@ -20,11 +25,6 @@ from plantsplat.report.splat import (
     encode_splat,
     read_points_ply,
     read_splat_ply,
-)
-from plantsplat.report.testing import (
-    make_synthetic_workspace,
-    synthetic_gaussians,
-    write_inria_ply,
 )
 from plantsplat.segment.preview import overlay
 

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from report_workspace import make_synthetic_workspace
 
 from plantsplat.report import write_batch_report, write_report
 from plantsplat.report.browser import (
@@ -17,7 +18,6 @@ from plantsplat.report.browser import (
     open_report,
     playwright_available,
 )
-from plantsplat.report.testing import make_synthetic_workspace
 
 pytestmark = [
     pytest.mark.skipif(find_chromium() is None,

@@ -227,16 +227,13 @@ def find_pot(points: np.ndarray, axis_xy: np.ndarray, slab: float = POT_SLAB_CM,
 
 
 def soil_level(points: np.ndarray, centre: np.ndarray, r_rim: float, z_rim: float, slab: float,
-               depth: float = 6.0, cover: float = 0.5, patches: int = 6) -> float:
-    """The top of the soil in a pot, from the Gaussians ``points [N, 3]`` inside the rim's disc (8 rings of equal area
-    x 16 directions): the highest slab below the rim that covers at least ``cover`` of the disc; else, where the
-    leaves leave only gaps, the lowest slab seen in patches off the crown (at least ``patches`` cells of the outer
-    6 rings, in 3 directions or more: nothing inside a pot is seen below its soil, the crown and the petioles' feet
-    are near the axis, and a leaf below the rim has soil or stems under it); the rim when neither is seen."""
+               depth: float = 6.0, cover: float = 0.5) -> float:
+    """The top of the soil in a pot: the highest slab below the rim whose Gaussians cover at least ``cover`` of the
+    disc inside the rim (8 rings of equal area x 16 directions); the rim when none does. The crown and the
+    petioles' feet above the soil are near the axis and do not cover the disc."""
     rin = 0.8 * r_rim
     d = np.linalg.norm(points[:, :2] - centre, axis=1)
     az = np.arctan2(points[:, 1] - centre[1], points[:, 0] - centre[0])
-    lowest = None
     for z in np.arange(z_rim, z_rim - depth, -slab):
         s = (np.abs(points[:, 2] - z) < slab) & (d < rin)
         cells = np.zeros((8, 16), bool)
@@ -244,10 +241,7 @@ def soil_level(points: np.ndarray, centre: np.ndarray, r_rim: float, z_rim: floa
               np.floor((az[s] + np.pi) / (2 * np.pi) * 16).astype(int) % 16] = True
         if cells.mean() >= cover:
             return float(z)
-        off_crown = cells[2:]
-        if z < z_rim - slab and off_crown.sum() >= patches and off_crown.any(axis=0).sum() >= 3:
-            lowest = float(z)
-    return float(z_rim) if lowest is None else lowest
+    return float(z_rim)
 
 
 @dataclass

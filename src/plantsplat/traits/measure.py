@@ -37,6 +37,7 @@ import time
 from dataclasses import asdict
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from plantsplat import traitdefs
 from plantsplat.cube import CubeSpec
@@ -198,6 +199,30 @@ def _drop_aruco_box(pts_cm, labels, gaussian: np.ndarray, cube_label: int | None
     return labels
 
 
+def _cube_fragments(pts_cm, labels, excl: set, size: float) -> list[int]:
+    """Small clusters that belong to the cube rather than to the plant: nearer the cube's box than the plant's body
+    (the largest cluster left) and under a twentieth of its size. Pieces of the cube's faces whose Gaussians sit
+    just outside its box make such clusters; a leaf apart from its petiole hangs nearer its own plant."""
+    ids = [i for i in range(int(labels.max() + 1)) if i not in excl and (labels == i).any()]
+    if len(ids) < 2:
+        return []
+    sizes = {i: int((labels == i).sum()) for i in ids}
+    body = max(ids, key=sizes.get)
+    rng = np.random.default_rng(0)
+    b = pts_cm[labels == body]
+    tree = cKDTree(b[rng.choice(len(b), min(len(b), 20000), replace=False)])
+    h = size / 2
+    out = []
+    for i in ids:
+        if i == body or sizes[i] * 20 > sizes[body]:
+            continue
+        q = pts_cm[labels == i]
+        to_box = np.linalg.norm(np.maximum(np.abs(q[:, :2]) - h, 0.0), axis=1) + np.maximum(q[:, 2] - size, 0.0)
+        if np.median(to_box) < np.median(tree.query(q, k=1)[0]):
+            out.append(i)
+    return out
+
+
 def _soil_under(P: np.ndarray, soil_z: float | None, disc: tuple | None, notes: list[str]) -> float | None:
     """``soil_z``, lowered to the plant's lowest point over the pot's inside when it is only an upper bound."""
     if soil_z is None or disc is None:
@@ -327,6 +352,12 @@ def measure_traits(
     if below:
         notes.append(f"{len(below)} cluster(s) below the ground plane left out")
         clusters_info["below_ground"] = below
+    if calibrated:
+        pieces = _cube_fragments(pts_cm, labels, excl, size)
+        excl |= set(pieces)
+        if pieces:
+            notes.append(f"{len(pieces)} small cluster(s) nearer the cube than the plant left out")
+            clusters_info["cube_fragments"] = pieces
     sel = select_plant(pts_cm, labels, exclude=excl, merge_distance=s.merge_distance_cm,
                        min_cluster_fraction=s.min_cluster_fraction, min_cluster_points=s.min_points)
     if sel is None:

@@ -1,4 +1,4 @@
-"""Synthetic workspaces for testing the report and benchmarking its viewer (not used by the pipeline).
+"""Synthetic workspaces for the report's tests and its viewer's benchmark (``benchmarks/bench_report.py``).
 
 :func:`make_synthetic_workspace` writes every file the report reads, in the formats the real stages
 write them: a plant-like cloud of Gaussians (pot, stem, leaves, red fruit) and a 10 cm cube in an
