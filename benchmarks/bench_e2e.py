@@ -65,7 +65,10 @@ def run_capture(label: str, video: Path, truth: Path, ws: Path, mode: str = "run
     if (ws / "traits.json").is_file() and truth.is_file():
         row.update(height_check(read_json(ws / "traits.json"), read_json(truth)))
     if (ws / "run.json").is_file():
-        row["stage_seconds"] = {k: v.get("seconds") for k, v in read_json(ws / "run.json").get("stages", {}).items()}
+        stages = read_json(ws / "run.json").get("stages", {})
+        row["stage_seconds"] = {k: v.get("seconds") for k, v in stages.items()}
+        row["stage_cpu_seconds"] = {k: v.get("cpu_seconds") for k, v in stages.items()}
+        row["stage_peak_rss_mb"] = {k: v.get("peak_rss_mb") for k, v in stages.items()}
     for name in ("poses.json", "segment.json", "metrics.json"):
         if (ws / name).is_file():
             d = read_json(ws / name)

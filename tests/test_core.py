@@ -170,3 +170,19 @@ def test_checkpoint_on_a_full_disk(tmp_path, monkeypatch):
     with pytest.raises(PlantsplatError, match="checkpoint.pt: the disk is full"):
         save_checkpoint(tmp_path / "checkpoint.pt", 1, {}, {}, {}, {})
     assert list(tmp_path.iterdir()) == []
+
+
+def test_stage_meter_counts_the_cpu_of_waited_for_children():
+    """A stage's CPU seconds include what it ran in processes it waited for (the synthetic video's encoder), which
+    the process's own CPU time misses; an idle wait adds wall time, not CPU time."""
+    import subprocess
+    import sys
+    import time
+
+    from plantsplat.resources import StageMeter
+
+    busy = "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.3: pass"
+    with StageMeter() as m:
+        subprocess.run([sys.executable, "-c", busy], check=True)
+        time.sleep(0.2)
+    assert 0.3 <= m.cpu_seconds < m.seconds and m.peak_rss_mb > 0

@@ -234,8 +234,8 @@ def _run_stages(ws: Workspace, src: Path | None, cfg: RunConfig, force: bool) ->
                 except PlantsplatError as also:  # a full disk: the stage's error names the write that failed
                     log.warning("could not update %s: %s", ws.run_json, also)
                 raise
-        record["stages"][name] = {"seconds": round(meter.seconds, 2), "peak_rss_mb": round(meter.peak_rss_mb, 1),
-                                  "result": _scalars(result)}
+        record["stages"][name] = {"seconds": round(meter.seconds, 2), "cpu_seconds": round(meter.cpu_seconds, 2),
+                                  "peak_rss_mb": round(meter.peak_rss_mb, 1), "result": _scalars(result)}
         _write_run_json(ws, record, cfg, src)
 
 

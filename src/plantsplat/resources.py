@@ -36,8 +36,15 @@ def _reset_peak() -> bool:
         return False
 
 
+def _cpu_seconds() -> float:
+    """CPU seconds (user and system) of this process and of its children that ended."""
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
 class StageMeter:
-    """Measures wall time and the peak resident memory of this process during a ``with`` block.
+    """Measures wall time, CPU time (this process's threads and the processes it waited for, such as the video
+    encoder) and the peak resident memory of this process during a ``with`` block.
 
     Where the kernel lets a process reset its high-water mark, the peak is exact; otherwise a
     background thread samples the resident size every 50 ms.
@@ -45,6 +52,7 @@ class StageMeter:
 
     def __init__(self):
         self.seconds = 0.0
+        self.cpu_seconds = 0.0
         self.peak_rss_mb = 0.0
         self._sampler: threading.Thread | None = None
         self._stop = threading.Event()
@@ -61,11 +69,12 @@ class StageMeter:
             self._sampled = _read_status("VmRSS") or 0.0
             self._sampler = threading.Thread(target=self._sample, daemon=True)
             self._sampler.start()
-        self._t0 = time.perf_counter()
+        self._t0, self._cpu0 = time.perf_counter(), _cpu_seconds()
         return self
 
     def __exit__(self, *exc):
         self.seconds = time.perf_counter() - self._t0
+        self.cpu_seconds = _cpu_seconds() - self._cpu0
         if self._exact:
             self.peak_rss_mb = _read_status("VmHWM") or 0.0
         else:
