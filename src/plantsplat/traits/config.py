@@ -97,3 +97,66 @@ def cube_edge_cm(s: TraitsConfig, cube: CubeSpec | None) -> float:
         (20.0, 10.0)
     """
     return float(s.cube_size_cm) if s.cube_size_cm is not None else float((cube or CubeSpec()).size)
+
+
+@dataclass(frozen=True)
+class CubeFitConfig:
+    """How the calibration cube is recognised among the clusters and measured (:mod:`plantsplat.traits.cube_fit`).
+    Lengths are shares of the cube's edge unless said otherwise; the values are those the traits benchmark
+    (``benchmarks/bench_traits.py``) and the foreign renders were measured with."""
+
+    extent_quantile: float = 0.01
+    """Robust extents of a cluster: between this quantile and its complement along each axis (stray points)."""
+    pca_max_ratio: float = 2.5
+    """Quick rejection: a cube's extents along any three orthogonal axes agree within sqrt(3); a cluster whose
+    shortest PCA extent is less than its longest over this is not a cube."""
+    pca_size_range: tuple[float, float] = (0.5, 2.2)
+    """Quick rejection when the cube's size is known: its longest PCA extent lies within these multiples of it."""
+    pca_sample: int = 5000
+    """Points of a cluster used for its PCA axes."""
+    orientation_sample: int = 4000
+    """Points used to fit the face planes that orient a candidate's box."""
+    orientation_planes: int = 6
+    """Planes fitted to orient a candidate's box (one per face)."""
+    core_share: float = 0.95
+    """A candidate's core: its points nearest its median, without attached floaters."""
+    surface_band: float = 0.08
+    """A point lies on the box's surface within this share of its size (a reconstructed cube is a hollow shell)."""
+    face_min_points: int = 16
+    """Fewest points on a face for its coverage to be judged."""
+    face_grid: int = 4
+    """A face's coverage is judged on this many cells along each side."""
+    face_cover: float = 0.6
+    """A face is covered when this share of its cells hold points."""
+    min_equality: float = 0.75
+    """Accept: the box's shortest extent at least this share of its longest."""
+    min_surface: float = 0.6
+    """Accept: at least this share of the points on the box's surface."""
+    size_range: tuple[float, float] = (0.75, 1.35)
+    """Accept, when the cube's size is known: the box's mean extent within these multiples of it."""
+    parallel_deg: float = 12.0
+    """Face planes whose normals are within this angle are one direction; three directions must be this close
+    to orthogonal."""
+    plane_threshold: float = 0.02
+    """RANSAC's inlier distance, as a share of the edge, when none is given."""
+    plane_min_points: int = 30
+    """Fewest points of a plane (and at least ``plane_min_share`` of the cluster's)."""
+    plane_min_share: float = 0.03
+    """Smallest share of the cluster's points a plane must hold."""
+    inlier_band: float = 2.5
+    """A point belongs to a plane within this many RANSAC thresholds."""
+    refit_min_points: int = 10
+    """Fewest points to refit a plane by least squares."""
+    fit_min_points: int = 60
+    """Fewest points of a cluster to fit a cube to."""
+    duplicate_share: float = 0.2
+    """Planes of one direction closer than this share of the edge are fits of the same face."""
+    face_min_share: float = 0.1
+    """A face counts when it holds at least this share of the best face's inliers (and ``plane_min_points``)."""
+    face_reach: float = 1.05
+    """A face's points lie within this multiple of half the edge across it."""
+    up_camera_share: float = 0.9
+    """Up from the cameras: confident when this share of the cameras lie above the chosen ground and less
+    above any other."""
+    up_bottom_ratio: float = 0.3
+    """Up from the unseen bottom face: confident when it holds under this share of its opposite face's points."""

@@ -33,8 +33,12 @@ import numpy as np
 
 from plantsplat.cube import FACE_NAMES, CubeSpec
 from plantsplat.log import get_logger
+from plantsplat.traits.config import CubeFitConfig
 
 log = get_logger(__name__)
+
+SETTINGS = CubeFitConfig()
+"""The tuning of the cube's recognition and fit (every value documented in :class:`CubeFitConfig`)."""
 
 
 def cube_surface_points(
@@ -153,7 +157,8 @@ def _robust_obb(points: np.ndarray, max_hull_points: int = 5000):
         c = points - points.mean(0)
         R = np.linalg.svd(c, full_matrices=False)[2]
     proj = (points - points.mean(0)) @ R.T  # [N, 3]
-    lo, hi = np.quantile(proj, [0.01, 0.99], axis=0)
+    q = SETTINGS.extent_quantile
+    lo, hi = np.quantile(proj, [q, 1.0 - q], axis=0)
     return R, lo, hi, proj
 
 
@@ -165,26 +170,28 @@ def evaluate_cube_candidate(
     if n < min_points:
         return CubeCandidate(label, n, [], 0.0, 0.0, 0, 0.0, False, "too few points")
     # quick rejection by the PCA extents (any axes of a cube give extents within a factor sqrt(3))
-    c = points - points.mean(0)
-    axes = np.linalg.svd(c[:: max(1, n // 5000)], full_matrices=False)[2]
-    lo, hi = np.quantile(c @ axes.T, [0.01, 0.99], axis=0)
+    c, k = points - points.mean(0), SETTINGS
+    axes = np.linalg.svd(c[:: max(1, n // k.pca_sample)], full_matrices=False)[2]
+    lo, hi = np.quantile(c @ axes.T, [k.extent_quantile, 1.0 - k.extent_quantile], axis=0)
     pe = hi - lo
-    if pe.min() < pe.max() / 2.5 or (cube_size is not None and not 0.5 * cube_size < pe.max() < 2.2 * cube_size):
+    small, large = k.pca_size_range
+    if pe.min() < pe.max() / k.pca_max_ratio or (cube_size is not None
+                                                 and not small * cube_size < pe.max() < large * cube_size):
         return CubeCandidate(label, n, sorted(pe.tolist(), reverse=True), float(pe.min() / pe.max()), 0.0, 0, 0.0,
                              False, "PCA extents are not a cube's")
     # box orientations to try: the minimal OBB of all points, of the core (without the 5 % farthest
     # points, e.g. attached floaters), and the cube frame from fitted face planes (noise-robust)
     best = None
-    core = points[np.linalg.norm(points - np.median(points, 0), axis=1) <= np.quantile(
-        np.linalg.norm(points - np.median(points, 0), axis=1), 0.95)]
-    for k in range(3):
-        if k == 0:
+    from_median = np.linalg.norm(points - np.median(points, 0), axis=1)
+    core = points[from_median <= np.quantile(from_median, k.core_share)]
+    for attempt in range(3):
+        if attempt == 0:
             R = _robust_obb(points)[0]
-        elif k == 1:
+        elif attempt == 1:
             R = _robust_obb(core)[0]
         else:
-            sub = points[:: max(1, n // 4000)]  # the orientation only: a subset is enough
-            fit = fit_cube_planes(sub, size_hint=cube_size, max_planes=6)
+            sub = points[:: max(1, n // k.orientation_sample)]  # the orientation only: a subset is enough
+            fit = fit_cube_planes(sub, size_hint=cube_size, max_planes=k.orientation_planes)
             if fit is None:
                 break
             R = fit.axes
@@ -198,15 +205,15 @@ def evaluate_cube_candidate(
 
 def _box_candidate(points: np.ndarray, R: np.ndarray, label: int, cube_size: float | None) -> CubeCandidate:
     """Cube-likeness of ``points`` in the box frame with axes ``R [3, 3]`` (rows)."""
-    n = len(points)
+    n, k = len(points), SETTINGS
     proj = (points - points.mean(0)) @ R.T  # [N, 3]
-    lo, hi = np.quantile(proj, [0.01, 0.99], axis=0)
+    lo, hi = np.quantile(proj, [k.extent_quantile, 1.0 - k.extent_quantile], axis=0)
     ext = hi - lo
     order = np.argsort(-ext)
     ext_sorted = ext[order]
     equality = float(ext_sorted[-1] / max(ext_sorted[0], 1e-12))
     size = float(np.mean(ext))
-    tol = 0.08 * size
+    tol = k.surface_band * size
     dist_to_surface = np.min(np.concatenate([np.abs(proj - lo), np.abs(hi - proj)], axis=1), axis=1)
     surface = float(np.mean(dist_to_surface < tol))
     covered = 0
@@ -214,22 +221,22 @@ def _box_candidate(points: np.ndarray, R: np.ndarray, label: int, cube_size: flo
         others = [a for a in range(3) if a != ax]
         for side in (lo[ax], hi[ax]):
             on = np.abs(proj[:, ax] - side) < tol
-            if on.sum() < 16:
+            if on.sum() < k.face_min_points:
                 continue
             uv = (proj[on][:, others] - lo[others]) / np.maximum(ext[others], 1e-12)
-            cells = np.clip((uv * 4).astype(int), 0, 3)
-            occ = len(np.unique(cells[:, 0] * 4 + cells[:, 1])) / 16
-            covered += occ >= 0.6
+            cells = np.clip((uv * k.face_grid).astype(int), 0, k.face_grid - 1)
+            occ = len(np.unique(cells[:, 0] * k.face_grid + cells[:, 1])) / k.face_grid**2
+            covered += occ >= k.face_cover
     why = []
-    if equality < 0.75:
+    if equality < k.min_equality:
         why.append(f"extents {np.round(ext_sorted, 3).tolist()} not equal")
-    if surface < 0.6:
+    if surface < k.min_surface:
         why.append(f"only {surface:.0%} of points on the box surface")
     if covered < 3:
         why.append(f"only {covered} faces covered")
-    if cube_size is not None and not (0.75 * cube_size <= size <= 1.35 * cube_size):
+    if cube_size is not None and not (k.size_range[0] * cube_size <= size <= k.size_range[1] * cube_size):
         why.append(f"size {size:.3g} is not the cube's {cube_size:.3g}")
-    score = equality * surface * covered / 6
+    score = equality * surface * covered / len(FACE_NAMES)
     return CubeCandidate(
         label, n, ext_sorted.tolist(), equality, surface, int(covered), float(score), not why, "; ".join(why)
     )
@@ -266,13 +273,14 @@ def _ransac_planes(pts: np.ndarray, thr: float, max_planes: int, iterations: int
     remaining = np.arange(len(pts))
     planes: list[tuple[np.ndarray, float]] = []
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        least = max(SETTINGS.plane_min_points, SETTINGS.plane_min_share * len(pts))
         for _ in range(max_planes):
-            if len(remaining) < max(30, 0.03 * len(pts)):
+            if len(remaining) < least:
                 break
             pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[remaining]))
             _, inl = pc.segment_plane(thr, 3, iterations)
             inl = np.asarray(inl, dtype=np.int64)
-            if len(inl) < max(30, 0.03 * len(pts)):
+            if len(inl) < least:
                 break
             nrm, d, _ = _lsq_plane(pts[remaining[inl]])
             planes.append((nrm, d))
@@ -281,19 +289,19 @@ def _ransac_planes(pts: np.ndarray, thr: float, max_planes: int, iterations: int
 
 
 def _nearest_plane(pts: np.ndarray, planes, thr: float):
-    """Distances ``[N, P]`` to each plane, the nearest plane per point, and whether it is within 2.5 thr."""
+    """Distances ``[N, P]`` to each plane, the nearest plane per point, and whether it is within the inlier band."""
     dist = np.stack([np.abs(pts @ n + d) for n, d in planes], axis=1)
-    return dist, dist.argmin(1), dist.min(1) < 2.5 * thr
+    return dist, dist.argmin(1), dist.min(1) < SETTINGS.inlier_band * thr
 
 
 def _refine_planes(pts: np.ndarray, planes, thr: float):
-    """Every point goes to its nearest plane (within 2.5 thr); each plane is refitted to its points, twice."""
+    """Every point goes to its nearest plane (within the inlier band); each plane is refitted to its points, twice."""
     for _ in range(2):
         _, near, ok = _nearest_plane(pts, planes, thr)
         new = []
         for k, (n0, d0) in enumerate(planes):
             sel = pts[ok & (near == k)]
-            if len(sel) < 10:
+            if len(sel) < SETTINGS.refit_min_points:
                 new.append((n0, d0))
                 continue
             n, d, _ = _lsq_plane(sel)
@@ -306,7 +314,7 @@ def _refine_planes(pts: np.ndarray, planes, thr: float):
 
 def _group_directions(planes, counts: np.ndarray) -> list[list[int]]:
     """Planes grouped into (up to) three orthogonal directions, most-supported planes first."""
-    cos_par = np.cos(np.radians(12))
+    cos_par, sin_par = np.cos(np.radians(SETTINGS.parallel_deg)), np.sin(np.radians(SETTINGS.parallel_deg))
     groups: list[list[int]] = []
     for k in np.argsort(-counts):
         n = planes[k][0]
@@ -315,13 +323,13 @@ def _group_directions(planes, counts: np.ndarray) -> list[list[int]]:
                 g.append(int(k))
                 break
         else:
-            if all(abs(n @ planes[g[0]][0]) < np.sin(np.radians(12)) for g in groups) and len(groups) < 3:
+            if all(abs(n @ planes[g[0]][0]) < sin_par for g in groups) and len(groups) < 3:
                 groups.append([int(k)])
     return groups
 
 
 def _two_sides(planes, group: list[int], counts: np.ndarray, size: float) -> list[list]:
-    """Within a direction, duplicate fits of the same face (offsets closer than 20 % of the edge) merged;
+    """Within a direction, duplicate fits of the same face (offsets closer than a share of the edge) merged;
     the two best-supported sides, each a list of ``(plane index, position along the direction)``."""
     ref = planes[group[0]][0]
     members = []
@@ -331,7 +339,7 @@ def _two_sides(planes, group: list[int], counts: np.ndarray, size: float) -> lis
     members.sort(key=lambda m: -m[1])
     sides: list[list] = []
     for m in members:
-        if sides and abs(m[1] - sides[-1][0][1]) < 0.2 * size:
+        if sides and abs(m[1] - sides[-1][0][1]) < SETTINGS.duplicate_share * size:
             sides[-1].append(m)
         else:
             sides.append([m])
@@ -345,7 +353,7 @@ def _side_planes(pts, planes, groups, counts, near, ok, size: float):
     for gi, g in enumerate(groups):
         for sd in _two_sides(planes, g, counts, size):
             idx = np.isin(near, [k for k, _ in sd]) & ok
-            if idx.sum() < 10:
+            if idx.sum() < SETTINGS.refit_min_points:
                 continue
             n, d, _ = _lsq_plane(pts[idx])
             side_axis.append(gi)
@@ -361,11 +369,12 @@ def _final_face_fits(pts, side_planes, thr: float):
         dist = np.stack([np.abs(pts @ n + d) for n, d in side_planes], axis=1)  # [N, S]
         near = dist.argmin(1)
         second = np.sort(dist, axis=1)[:, 1] if dist.shape[1] > 1 else np.full(len(pts), np.inf)
-        clean = (dist.min(1) < 2.5 * thr) & (second > 2.5 * thr)
+        band = SETTINGS.inlier_band * thr
+        clean = (dist.min(1) < band) & (second > band)
         fits = []
         for k, (n0, d0) in enumerate(side_planes):
             idx = clean & (near == k)
-            if idx.sum() < 10:
+            if idx.sum() < SETTINGS.refit_min_points:
                 fits.append((n0, d0, np.nan, 0, pts[near == k].mean(0) if (near == k).any() else None))
                 continue
             n, d, rms = _lsq_plane(pts[idx])
@@ -395,7 +404,8 @@ def _faces_per_axis(fits, side_axis, groups, planes, centre0: np.ndarray, size: 
     axis_normals = []
     axis_centres: list[float | None] = []
     for gi in range(len(groups)):
-        ks = [k for k in range(len(fits)) if side_axis[k] == gi and fits[k][3] >= max(30, 0.1 * best_count)]
+        least = max(SETTINGS.plane_min_points, SETTINGS.face_min_share * best_count)
+        ks = [k for k in range(len(fits)) if side_axis[k] == gi and fits[k][3] >= least]
         nav = _axis_normal(fits, ks, side_axis, gi, planes[groups[gi][0]][0])
         axis_normals.append(nav)
         offs = []
@@ -445,14 +455,14 @@ def fit_cube_planes(
     OBB size). Returns None when fewer than one pair of opposite faces could be fitted.
     """
     pts = np.asarray(points, dtype=np.float64)
-    if len(pts) < 60:
+    if len(pts) < SETTINGS.fit_min_points:
         return None
     if size_hint:
         size = float(size_hint)
     else:
         _, lo, hi, _ = _robust_obb(pts)
         size = float(np.mean(hi - lo))
-    thr = float(threshold) if threshold else 0.02 * size
+    thr = float(threshold) if threshold else SETTINGS.plane_threshold * size
     planes = _ransac_planes(pts, thr, max_planes, iterations, seed)
     if len(planes) < 2:
         return None
@@ -462,7 +472,7 @@ def fit_cube_planes(
     groups = _group_directions(planes, counts)
     side_axis, side_planes = _side_planes(pts, planes, groups, counts, near, ok, size)
     fits, dist = _final_face_fits(pts, side_planes, thr)
-    ok = dist.min(1) < 2.5 * thr
+    ok = dist.min(1) < SETTINGS.inlier_band * thr
     centre0 = pts.mean(0)
     faces, edge_per_axis, axis_normals, axis_centres = _faces_per_axis(fits, side_axis, groups, planes, centre0, size)
     measured = [e for e in edge_per_axis if e is not None]
@@ -489,14 +499,14 @@ def fit_cube_planes(
 
 
 def _face_counts(pts: np.ndarray, fit: CubeFit, thr: float) -> dict[str, int]:
-    """Points within 2.5 thr of each of the six ideal faces, keyed ``'{axis}{+|-}'``."""
+    """Points within the inlier band of each of the six ideal faces, keyed ``'{axis}{+|-}'``."""
     rel = (pts - fit.centre) @ fit.axes.T  # [N, 3]
     h = fit.edge / 2
     out = {}
     for ax in range(3):
-        inside = np.all(np.abs(np.delete(rel, ax, axis=1)) < h * 1.05, axis=1)
+        inside = np.all(np.abs(np.delete(rel, ax, axis=1)) < h * SETTINGS.face_reach, axis=1)
         for sgn, name in ((1, "+"), (-1, "-")):
-            out[f"{ax}{name}"] = int((inside & (np.abs(rel[:, ax] - sgn * h) < 2.5 * thr)).sum())
+            out[f"{ax}{name}"] = int((inside & (np.abs(rel[:, ax] - sgn * h) < SETTINGS.inlier_band * thr)).sum())
     return out
 
 
@@ -526,7 +536,7 @@ def decide_up(
         best = scores[0]
         fit.up_axis, fit.up = best[2], best[3] * fit.axes[best[2]]
         fit.up_method = f"cameras ({best[0]:.0%} above the ground)"
-        fit.up_confident = best[0] >= 0.9 and scores[1][0] < 0.9
+        fit.up_confident = best[0] >= SETTINGS.up_camera_share and scores[1][0] < SETTINGS.up_camera_share
         return fit
     fc = fit.extra.get("face_points", {})
     best = None
@@ -540,7 +550,7 @@ def decide_up(
     ratio, ax, s = best
     fit.up_axis, fit.up = ax, s * fit.axes[ax]
     fit.up_method = f"unseen bottom face (its point count is {ratio:.0%} of the top's)"
-    fit.up_confident = ratio < 0.3
+    fit.up_confident = ratio < SETTINGS.up_bottom_ratio
     return fit
 
 
