@@ -161,12 +161,14 @@ def _circle(xy: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def ring(xy: np.ndarray, axis_xy: np.ndarray, rng: np.random.Generator, band: float = 0.5, sectors: int = 16,
-         trials: int = 300, r_range: tuple[float, float] = (3.0, 16.0), max_offset: float = 5.0, contrast: float = 3.0):
+         trials: int = 300, r_range: tuple[float, float] = (3.0, 16.0), max_offset: float = 5.0, contrast: float = 3.0,
+         min_points: int = 10):
     """The best horizontal ring in a slab of points ``xy [N, 2]`` (RANSAC circles near the axis): ``(sectors of the
     circle covered, inliers, centre, radius)`` or None. A pot's wall and rim are thin shells seen all around:
     the band of ``band`` cm on either side of the circle holds ``contrast`` times as many points per width as the
-    annulus beside it. Leaves at one height lie at many radii: no such shell."""
-    if len(xy) < 10:
+    annulus beside it. Leaves at one height lie at many radii: no such shell. A slab of fewer than ``min_points``
+    points holds none."""
+    if len(xy) < min_points:
         return None
     best = None
     dist = np.linalg.norm(xy - axis_xy, axis=1)
@@ -196,19 +198,20 @@ POT_SLAB_CM = 0.5
 
 
 def find_pot(points: np.ndarray, axis_xy: np.ndarray, slab: float = POT_SLAB_CM, reach: float = 16.0,
-             min_sectors: int = 14, seed: int = 0) -> Pot | None:
+             min_sectors: int = 14, seed: int = 0, window: float = 1.5, wall_offset_cm: float = 1.5) -> Pot | None:
     """The pot standing on the ground around the axis, from the model's Gaussians ``points [N, 3]`` (cube frame).
 
-    Each horizontal slab (``slab`` cm, from the ground up) is searched for a ring around the axis
-    (:func:`ring`); the rim is the strongest ring seen all around (at least ``min_sectors`` of 16
-    directions), its top the highest slab above it that still holds that ring. The wall below follows
-    the rings found there (a pot widens or narrows evenly). None when no ring is strong enough.
+    Each horizontal slab (``slab`` cm, from the ground up; its points within ``window`` slabs of its height) is
+    searched for a ring around the axis (:func:`ring`); the rim is the strongest ring seen all around (at least
+    ``min_sectors`` of 16 directions), its top the highest slab above it that still holds that ring. The wall below follows
+    the rings found there whose centre lies within ``wall_offset_cm`` of the rim's (a pot widens or narrows
+    evenly). None when no ring is strong enough.
     """
     rng = np.random.default_rng(seed)
     near = points[np.linalg.norm(points[:, :2] - axis_xy, axis=1) < reach]
     rings = []
     for z in np.arange(slab, near[:, 2].max(initial=0.0), slab):
-        found = ring(near[np.abs(near[:, 2] - z) < 1.5 * slab][:, :2], axis_xy, rng)
+        found = ring(near[np.abs(near[:, 2] - z) < window * slab][:, :2], axis_xy, rng)
         if found is not None and found[0] >= min_sectors:
             rings.append((float(z), *found))
     if not rings:
@@ -219,7 +222,8 @@ def find_pot(points: np.ndarray, axis_xy: np.ndarray, slab: float = POT_SLAB_CM,
         if z - z_rim > 3 * slab or abs(r - r_rim) > 1.0 or np.linalg.norm(c - centre) > 1.0:
             break
         z_rim = z
-    wall = [(z, r) for z, _, _, c, r in rings if z < z_rim and np.linalg.norm(c - centre) < 1.5 and r <= r_rim + 1.0]
+    wall = [(z, r) for z, _, _, c, r in rings
+            if z < z_rim and np.linalg.norm(c - centre) < wall_offset_cm and r <= r_rim + 1.0]
     heights = np.array([0.0] + [z for z, _ in wall] + [z_rim])
     radii = np.array([wall[0][1] if wall else r_rim] + [r for _, r in wall] + [r_rim])
     return Pot(centre=np.asarray(centre), rim_z=float(z_rim), soil_z=soil_level(near, centre, r_rim, z_rim, slab),
@@ -227,18 +231,19 @@ def find_pot(points: np.ndarray, axis_xy: np.ndarray, slab: float = POT_SLAB_CM,
 
 
 def soil_level(points: np.ndarray, centre: np.ndarray, r_rim: float, z_rim: float, slab: float,
-               depth: float = 6.0, cover: float = 0.5) -> float:
+               depth: float = 6.0, cover: float = 0.5, inner: float = 0.8, rings: int = 8, sectors: int = 16) -> float:
     """The top of the soil in a pot: the highest slab below the rim whose Gaussians cover at least ``cover`` of the
-    disc inside the rim (8 rings of equal area x 16 directions); the rim when none does. The crown and the
-    petioles' feet above the soil are near the axis and do not cover the disc."""
-    rin = 0.8 * r_rim
+    disc inside the rim (``inner`` of its radius, in ``rings`` rings of equal area x ``sectors`` directions); the
+    rim when none does. The crown and the petioles' feet above the soil are near the axis and do not cover the
+    disc."""
+    rin = inner * r_rim
     d = np.linalg.norm(points[:, :2] - centre, axis=1)
     az = np.arctan2(points[:, 1] - centre[1], points[:, 0] - centre[0])
     for z in np.arange(z_rim, z_rim - depth, -slab):
         s = (np.abs(points[:, 2] - z) < slab) & (d < rin)
-        cells = np.zeros((8, 16), bool)
-        cells[np.minimum((d[s] / rin) ** 2 * 8, 7).astype(int),
-              np.floor((az[s] + np.pi) / (2 * np.pi) * 16).astype(int) % 16] = True
+        cells = np.zeros((rings, sectors), bool)
+        cells[np.minimum((d[s] / rin) ** 2 * rings, rings - 1).astype(int),
+              np.floor((az[s] + np.pi) / (2 * np.pi) * sectors).astype(int) % sectors] = True
         if cells.mean() >= cover:
             return float(z)
     return float(z_rim)
@@ -322,14 +327,16 @@ def _weigh_evidence(params: dict, mu: np.ndarray, candidate: np.ndarray, orbit_r
 
 def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: np.ndarray, reach: float = 0.55,
                  min_in_view: float = 0.85, sfm_reach: float = 0.07, ground_cm: float = 1.0,
-                 pot_margin_cm: float = 1.0, seed: int = 0, decide: DecideConfig | None = None) -> ObjectModel:
+                 pot_margin_cm: float = 1.0, seed: int = 0, decide: DecideConfig | None = None,
+                 opaque: float = 0.2) -> ObjectModel:
     """Which Gaussians of a whole-scene model are the plant (see the module docstring).
 
     ``params``: the model (``means`` ``[N, 3]`` ...); ``views``: its cameras (``train.data.View``);
     ``cube``: the calibration cube when the model is in its frame (cm, z up), else None;
     ``sfm_points`` ``[P, 3]``: the poses stage's triangulated points. The plant is looked for within
     ``reach`` times the cameras' median distance from the axis, above the ground by ``ground_cm``,
-    outside the pot (grown by ``pot_margin_cm``) and the cube, in view in at least ``min_in_view`` of
+    outside the pot (found among the Gaussians more opaque than ``opaque``, grown by ``pot_margin_cm``) and the
+    cube, in view in at least ``min_in_view`` of
     the frames, and within ``sfm_reach`` times the cameras' distance of an SfM point: a blank ceiling
     or wall can be drawn by Gaussians at any depth, and a quick model sometimes hangs a cloud of them
     above the plant, where structure from motion, which needs texture seen from several frames,
@@ -356,8 +363,8 @@ def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: n
         region &= mu[:, 2] > ground_cm
         h = cube.size / 2 + 0.5
         region &= ~((np.abs(mu[:, 0]) < h) & (np.abs(mu[:, 1]) < h) & (mu[:, 2] < cube.size + 0.5))
-        opaque = torch.sigmoid(params["opacities"]).numpy().reshape(-1) > 0.2
-        pot = find_pot(mu[opaque], centre[:2], seed=seed)
+        solid = torch.sigmoid(params["opacities"]).numpy().reshape(-1) > opaque
+        pot = find_pot(mu[solid], centre[:2], seed=seed)
         if pot is not None:
             region &= ~pot.contains(mu, pot_margin_cm)
             info["pot"] = pot.summary()
