@@ -129,3 +129,16 @@ def test_stage_package_layout(stage):
         assert isinstance(fns.get(name), ast.FunctionDef), f"{stage}/stage.py has no function {name}"
     args = {name: [a.arg for a in fns[name].args.args] for name in ("run", "inputs", "outputs")}
     assert args["run"][:2] == ["ws", "cfg"] and args["inputs"][:1] == ["ws"] and args["outputs"] == ["ws"], args
+
+
+def test_the_cli_and_the_pipeline_load_no_heavy_library():
+    """`plantsplat --help`, option parsing and `plantsplat.pipeline` stay quick: the libraries that take about a
+    second to load (PyTorch, COLMAP, Open3D, OpenCV, SciPy, PyAV, matplotlib) load in the functions that use them."""
+    import subprocess
+    import sys
+
+    heavy = ("torch", "pycolmap", "open3d", "cv2", "scipy", "av", "matplotlib")
+    code = ("import sys, plantsplat.cli, plantsplat.pipeline, plantsplat.batch; "
+            f"print(','.join(m for m in {heavy!r} if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == "", f"loaded at import: {out}"

@@ -18,9 +18,11 @@ from __future__ import annotations
 import csv
 import dataclasses
 import io
+import multiprocessing as mp
 import os
 import re
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated
@@ -28,9 +30,12 @@ from typing import Annotated
 import tyro
 
 from plantsplat.errors import PlantsplatError
+from plantsplat.groundtruth import read_ground_truth_csv
 from plantsplat.io import csv_cell, write_json_atomic, write_text_atomic
-from plantsplat.log import get_logger
-from plantsplat.pipeline import RunConfig
+from plantsplat.log import get_logger, progress, setup_logging
+from plantsplat.options import check_run_options
+from plantsplat.pipeline import RunConfig, run_pipeline
+from plantsplat.preflight import check_option_paths, check_workspace_folder
 from plantsplat.traitdefs import TRAIT_KEYS
 
 log = get_logger(__name__)
@@ -110,7 +115,7 @@ def _limit_threads(n: int) -> None:
         os.environ[var] = str(n)
     os.environ.setdefault("PLANTSPLAT_NO_PROGRESS", "1")
     try:
-        import torch
+        import torch  # deferred: heavy, and only a worker process needs its threads set
 
         torch.set_num_threads(n)
     except Exception:
@@ -120,13 +125,9 @@ def _limit_threads(n: int) -> None:
 def run_one_plant(plant_id: str, source: str, ws: str, run_cfg: RunConfig, threads: int) -> dict:
     """Run the whole pipeline for one plant; never raises (the result carries the failure)."""
     _limit_threads(threads)
-    from plantsplat.log import setup_logging
-    from plantsplat.pipeline import run_pipeline
-
     setup_logging(quiet=True)
     opts = dataclasses.replace(run_cfg, plant_id=plant_id)
     if opts.ground_truth is not None:
-        from plantsplat.groundtruth import read_ground_truth_csv
 
         rows, _ = read_ground_truth_csv(opts.ground_truth)
         if plant_id not in rows:
@@ -148,10 +149,7 @@ def run_one_plant(plant_id: str, source: str, ws: str, run_cfg: RunConfig, threa
 
 
 def _run_local(jobs: list[tuple], workers: int) -> list[dict]:
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
 
-    from plantsplat.log import progress
 
     threads = _threads_for(workers)
     results = []
@@ -170,10 +168,9 @@ def _run_local(jobs: list[tuple], workers: int) -> list[dict]:
 
 def _run_ray(jobs: list[tuple], address: str, run_cfg: RunConfig, workers: int) -> list[dict]:
     try:
-        import ray
+        import ray  # deferred: optional (the cluster backend)
     except ImportError as exc:
         raise PlantsplatError("--ray-address needs Ray: pip install 'plantsplat[ray]'") from exc
-    from plantsplat.log import progress
 
     init_kwargs = {"ignore_reinit_error": True, "log_to_driver": False, "include_dashboard": False}
     if address == "local":
@@ -207,8 +204,6 @@ def _run_ray(jobs: list[tuple], address: str, run_cfg: RunConfig, workers: int) 
 
 def run_batch(manifest: str | Path, out: str | Path, opts: BatchConfig) -> dict:
     """Run every plant of ``manifest`` into ``out``; returns the batch summary (also ``out/batch.json``)."""
-    from plantsplat.options import check_run_options
-    from plantsplat.preflight import check_option_paths, check_workspace_folder
 
     out = Path(out)
     check_workspace_folder(out)
@@ -217,7 +212,6 @@ def run_batch(manifest: str | Path, out: str | Path, opts: BatchConfig) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     rows = read_manifest(manifest)
     if opts.ground_truth is not None:
-        from plantsplat.groundtruth import read_ground_truth_csv
 
         read_ground_truth_csv(opts.ground_truth)  # an unreadable file stops the batch before any work
     run_cfg = dataclasses.replace(opts.run, ground_truth=opts.ground_truth)
@@ -254,7 +248,6 @@ def run_batch(manifest: str | Path, out: str | Path, opts: BatchConfig) -> dict:
     write_json_atomic(out / "batch.json", summary)
     truth = None
     if opts.ground_truth is not None:
-        from plantsplat.groundtruth import read_ground_truth_csv
 
         truth, _ = read_ground_truth_csv(opts.ground_truth)
     if opts.run.report:  # --no-report: neither the plants' reports nor the batch's
@@ -284,8 +277,7 @@ def _fmt(v) -> str:
 
 
 def _accuracy(out: Path, plants: list[dict], gt_path: Path) -> dict:
-    from plantsplat.groundtruth import read_ground_truth_csv
-    from plantsplat.traits.stats import accuracy_table, scatter_plots
+    from plantsplat.traits.stats import accuracy_table, scatter_plots  # deferred: the traits package loads OpenCV
 
     truth, problems = read_ground_truth_csv(gt_path)
     for p in problems:
@@ -312,7 +304,7 @@ def _accuracy(out: Path, plants: list[dict], gt_path: Path) -> dict:
 
 def _maybe_batch_report(out: Path, plants: list[dict], accuracy: dict | None, truth: dict | None) -> None:
     try:
-        from plantsplat.report import write_batch_report
+        from plantsplat.report import write_batch_report  # deferred: only with a report
     except ImportError:
         return
     reports = {p["plant_id"]: Path(p["workspace"]) / "report.html" for p in plants

@@ -10,9 +10,7 @@ Touching fruit merge into one cluster and are counted once.
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
 from plantsplat.traits.config import TraitsConfig
 
@@ -44,6 +42,8 @@ def unripe_fruit_mask(colors: np.ndarray) -> np.ndarray:
         >>> unripe_fruit_mask(np.array([[190, 196, 140], [40, 160, 50], [200, 20, 30]], np.uint8)).tolist()
         [True, False, False]
     """
+    import cv2  # deferred: OpenCV is slow to load, and the CLI loads this package to read its options
+
     hsv = cv2.cvtColor(np.ascontiguousarray(np.asarray(colors, np.uint8).reshape(1, -1, 3)), cv2.COLOR_RGB2HSV)[0]
     lo, hi = (np.array(b, np.uint8) for b in UNRIPE_HSV)
     return np.all((hsv >= lo) & (hsv <= hi), axis=1)
@@ -100,6 +100,8 @@ def is_hanging_fruit(q, cols_q, s: TraitsConfig, top: float) -> bool:
 def join_fruit(pts_cm, cols, labels, sel, s: TraitsConfig, notes: list[str]) -> list:
     """Fruit-coloured clusters left out as far from the plant but hanging within ``s.fruit_join_cm`` of
     it join the plant (fruit on peduncles too thin to reconstruct). Updates ``sel`` in place."""
+    from scipy.spatial import cKDTree  # deferred: slow to load (see unripe_fruit_mask)
+
     tree = cKDTree(pts_cm[sel.mask])
     top = float(pts_cm[sel.mask, 2].max())
     joined = []
