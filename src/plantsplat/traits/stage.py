@@ -166,12 +166,8 @@ def _height_bounds(out: dict, res: TraitResult, soil_z: float | None, disc: tupl
     if P is None or not len(P) or out.get("height_cm") is None:
         return None
     soil = None
-    if soil_z is not None:
-        lowest = None
-        if disc is not None:
-            inside = np.linalg.norm(P[:, :2] - np.asarray(disc[0]), axis=1) < disc[1]
-            lowest = float(P[inside, 2].min()) if inside.any() else None
-        soil = soil_interval(soil_z, disc is None, POT_SLAB_CM, lowest)
+    if soil_z is not None:  # not seen: the measurement lowered the rim to the plant's lowest centre in the pot
+        soil = soil_interval(soil_z, disc is None, POT_SLAB_CM, None if disc is None else res.soil_z)
         out["soil_interval_cm"] = [round(soil.low, 3), round(soil.high, 3)]
     lo, hi = height_bounds(float(P[:, 2].max()), soil, scale_se, out.get("height_extent_cm"))
     out["height_bounds_cm"] = [round(lo, 3), round(hi, 3)]
