@@ -61,6 +61,16 @@ class QualityThresholds:
     """fail: a plant shorter than this many cube edges (3 cm) is not what was filmed."""
     height_interval_warn: float = 0.05
     """warn: the height's bounds (the soil's interval and the scale's error) span more than this share of it."""
+    height_interval_fail: float = 0.10
+    """fail: they span more than this share of it. A soil hidden under the leaves is bounded only by the ground and
+    the plant's lowest point in the pot, and that point is not evidence enough: on foreign renders 101 and 104
+    (2026-11-27) soil and stray Gaussians in the pot taken for plant put it 0.9-3.3 cm under the true soil, and
+    the heights from it came out 3-13 % tall."""
+    base_spread: float = 0.5
+    """fail: where the soil was not seen, the plant's lowest centimetre in the pot spreads over more than this share
+    of the inside's radius (RMS from the axis; 0.71 for a layer even over the inside, a crown stands near the
+    axis): soil or pot wall was taken for plant, and the height from it is too tall (foreign renders 101 and 104,
+    2026-11-27: 0.55 and 0.65, heights +4 and +13 %)."""
     base_into_pot_cm: float = 0.5
     """fail: where the soil was not seen, the plant reaches less than this far below the pot's rim (one slab of the
     pot finder): its base, which stands on the soil, was not found, so the height from its lowest point rests on
@@ -157,11 +167,16 @@ def result_checks(traits: dict, plant_points: int, plant_top_cm: float | None, c
         share = (height_bounds[1] - height_bounds[0]) / h
         what = (f"the height's bounds {height_bounds[0]:.1f}-{height_bounds[1]:.1f} cm against the height "
                 f"(soil {'none: the extent' if soil is None else soil.how})")
-        out.append(Check("height_interval_share", share, t.height_interval_warn, "<=", what, severity="warn"))
+        out.append(Check("height_interval_share", share, t.height_interval_fail, "<=", what))
+        out.append(Check("height_interval_share_warn", share, t.height_interval_warn, "<=", what, severity="warn"))
     if soil is not None and soil.into_pot is not None:
         out.append(Check("plant_base_into_pot_cm", soil.into_pot, t.base_into_pot_cm, ">=",
                          "soil not seen: how far the plant's lowest point reaches below the pot's rim (its base "
                          "stands on the soil; a plant that does not reach into the pot lost its base)"))
+    if soil is not None and soil.base_spread is not None:
+        out.append(Check("plant_base_spread", soil.base_spread, t.base_spread, "<=",
+                         "soil not seen: how the plant's lowest centimetre in the pot spreads over it (a crown "
+                         "stands near the axis; soil or pot wall taken for plant spreads over the inside)"))
     h = traits.get("height_cm")
     if h is not None:
         out.append(Check("plant_height_cm", h, t.plant_height_cube_edges * cube_cm, ">=", "against the cube's size"))

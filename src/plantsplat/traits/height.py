@@ -24,12 +24,14 @@ from dataclasses import dataclass
 @dataclass(frozen=True)
 class SoilInterval:
     """Where the soil can lie (cm, cube frame): from ``low`` to ``high``; ``how`` it was bounded; for soil not seen,
-    how far the plant reaches below the rim into the pot (``into_pot``, cm; None where it was seen)."""
+    how far the plant reaches below the rim into the pot (``into_pot``, cm) and how its lowest centimetre there
+    spreads (``base_spread``, see :class:`~plantsplat.traits.result.TraitResult`); None where it was seen."""
 
     low: float
     high: float
     how: str
     into_pot: float | None = None
+    base_spread: float | None = None
 
 
 def soil_interval(soil_z: float, seen: bool, resolution_cm: float, lowest_inside: float | None) -> SoilInterval:

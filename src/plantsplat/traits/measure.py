@@ -224,19 +224,26 @@ def _cube_fragments(pts_cm, labels, excl: set, size: float) -> list[int]:
     return out
 
 
-def _soil_under(P: np.ndarray, soil_z: float | None, disc: tuple | None, notes: list[str]) -> float | None:
-    """``soil_z``, lowered to the plant's lowest point over the pot's inside when it is only an upper bound. ``P``:
-    the plant's Gaussian centres, which lie on the surfaces they draw: the ends of their extents reach below them
-    (on foreign render 101, those of Gaussians drawing the soil reached 1.2 cm under it, the centres 0.35 cm)."""
+def _soil_under(P: np.ndarray, soil_z: float | None, disc: tuple | None, notes: list[str]
+                ) -> tuple[float | None, float | None]:
+    """``soil_z``, lowered to the plant's lowest point over the pot's inside when it is only an upper bound, and how
+    that lowest centimetre of the plant spreads over the inside (its RMS distance from the pot's axis over the
+    inside's radius: a crown and petioles' feet stand near the axis; soil or pot wall taken for plant spreads
+    like the soil, 0.71 for a layer even over the inside). ``P``: the plant's Gaussian centres, which lie on the
+    surfaces they draw: the ends of their extents reach below them (on foreign render 101, those of Gaussians
+    drawing the soil reached 1.2 cm under it, the centres 0.35 cm)."""
     if soil_z is None or disc is None:
-        return soil_z
-    inside = np.linalg.norm(P[:, :2] - np.asarray(disc[0]), axis=1) < disc[1]
+        return soil_z, None
+    r = np.linalg.norm(P[:, :2] - np.asarray(disc[0]), axis=1)
+    inside = r < disc[1]
     if not inside.any() or P[inside, 2].min() >= soil_z:
-        return soil_z
+        return soil_z, None
     low = float(P[inside, 2].min())
+    base = inside & (P[:, 2] < low + 1.0)
+    spread = float(np.sqrt(np.mean(r[base] ** 2)) / disc[1])
     notes.append(f"the soil was not seen; the plant's lowest point inside the pot ({low:.1f} cm) is taken for it "
                  f"instead of the rim ({soil_z:.1f} cm)")
-    return low
+    return low, spread
 
 
 def _plant_traits(P, P_centres, C_centres, soil, s: TraitsConfig, notes: list[str]):
@@ -382,7 +389,7 @@ def measure_traits(
     if P[:, 2].min() < -1.0:
         reasons.append(f"plant points reach {P[:, 2].min():.1f} cm below the ground plane: check the vertical")
 
-    soil = _soil_under(pts_cm[plant_mask & is_centre], soil_z, soil_disc, notes) if calibrated else None
+    soil, spread = _soil_under(pts_cm[plant_mask & is_centre], soil_z, soil_disc, notes) if calibrated else (None, None)
     traits, robust, fruit_centres = _plant_traits(P, pts_cm[plant_mask & is_centre],
                                                   None if C is None else cols[plant_mask & is_centre], soil, s, notes)
     timings["plant_and_traits"] = time.perf_counter() - t2
@@ -392,4 +399,5 @@ def measure_traits(
         traits=traits, robust=robust, quality="warning" if reasons else "ok", reasons=reasons, scale=scale,
         cube=cube_json, clusters=clusters_info, settings=asdict(s), plant_points=P, plant_colors=C,
         cube_points=cube_pts, fruit_centres=fruit_centres, transform=T, timings=timings, notes=notes, soil_z=soil,
+        base_spread=spread,
     )

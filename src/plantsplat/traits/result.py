@@ -39,6 +39,9 @@ class TraitResult:
     """Informational messages that do not lower the quality."""
     soil_z: float | None = None
     """Height of the soil surface the height is measured from (cm, calibrated frame); None: the plant's extent."""
+    base_spread: float | None = None
+    """Soil not seen: how the plant's lowest centimetre in the pot spreads over its inside (RMS distance from the
+    axis over the inside's radius); None otherwise."""
 
     def to_json(self) -> dict:
         """The ``traits.json`` content (without the point arrays)."""
