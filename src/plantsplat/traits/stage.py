@@ -167,7 +167,7 @@ def _height_bounds(out: dict, res: TraitResult, soil_z: float | None, disc: tupl
     if P is None or not len(P) or out.get("height_cm") is None:
         return None
     soil = None
-    if soil_z is not None:  # not seen: the measurement lowered the rim to the plant's lowest centre in the pot
+    if soil_z is not None:  # where it was not seen (a disc), the measurement lowered the rim to the plant's base
         soil = soil_interval(soil_z, disc is None, POT_SLAB_CM, None if disc is None else res.soil_z)
         if disc is not None:
             soil = dataclasses.replace(soil, base_spread=res.base_spread)
