@@ -105,6 +105,19 @@ class CubeSpec:
         return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
 
 
+def in_cube_box(points: np.ndarray, size: float, margin: float) -> np.ndarray:
+    """``[N]`` bool: points ``[N, 3]`` (cube frame) inside the box of a cube of edge ``size`` standing on the ground
+    at the origin, grown by ``margin`` on every side.
+
+    Example:
+        >>> in_cube_box(np.array([[0.0, 0.0, 5.0], [5.3, 0.0, 1.0], [0.0, 0.0, -1.0]]), 10.0, 0.5).tolist()
+        [True, True, False]
+    """
+    h = size / 2 + margin
+    return ((np.abs(points[:, 0]) < h) & (np.abs(points[:, 1]) < h)
+            & (points[:, 2] > -margin) & (points[:, 2] < size + margin))
+
+
 def cube_pose(
     detections: dict[int, np.ndarray],
     K: np.ndarray,

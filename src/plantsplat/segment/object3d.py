@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from plantsplat.cube import CubeSpec
+from plantsplat.cube import CubeSpec, in_cube_box
 from plantsplat.log import get_logger
 from plantsplat.segment.decide import DecideConfig, decide_plant
 
@@ -361,8 +361,7 @@ def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: n
         region &= cKDTree(sfm_points).query(mu, distance_upper_bound=sfm_reach * cam_radial)[0] < np.inf
     if cube is not None:
         region &= mu[:, 2] > ground_cm
-        h = cube.size / 2 + 0.5
-        region &= ~((np.abs(mu[:, 0]) < h) & (np.abs(mu[:, 1]) < h) & (mu[:, 2] < cube.size + 0.5))
+        region &= ~in_cube_box(mu, cube.size, 0.5)
         solid = torch.sigmoid(params["opacities"]).numpy().reshape(-1) > opaque
         pot = find_pot(mu[solid], centre[:2], seed=seed)
         if pot is not None:

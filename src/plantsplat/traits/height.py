@@ -34,14 +34,16 @@ class SoilInterval:
     base_spread: float | None = None
 
 
-def soil_interval(soil_z: float, seen: bool, resolution_cm: float, lowest_inside: float | None) -> SoilInterval:
+def soil_interval(soil_z: float, seen: bool, resolution_cm: float, lowest_inside: float | None,
+                  base_spread: float | None = None) -> SoilInterval:
     """The soil's interval: ``soil_z`` within half of ``resolution_cm`` where it was ``seen``; else from the ground (0)
-    to the lower of ``soil_z`` (the rim) and the plant's lowest point over the pot's inside (``lowest_inside``)."""
+    to the lower of ``soil_z`` (the rim) and the plant's lowest point over the pot's inside (``lowest_inside``), with
+    how that lowest part spreads (``base_spread``)."""
     if seen:
         return SoilInterval(soil_z - resolution_cm / 2, soil_z + resolution_cm / 2, "seen")
     high = soil_z if lowest_inside is None else min(soil_z, lowest_inside)
     return SoilInterval(0.0, max(high, 0.0), "not seen: between the ground and the plant's lowest point in the pot",
-                        into_pot=soil_z - high)
+                        into_pot=soil_z - high, base_spread=base_spread)
 
 
 def height_bounds(top_z: float, soil: SoilInterval | None, scale_se: float | None, extent: float | None = None

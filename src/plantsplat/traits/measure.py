@@ -39,7 +39,7 @@ from dataclasses import asdict
 import numpy as np
 
 from plantsplat import traitdefs
-from plantsplat.cube import CubeSpec
+from plantsplat.cube import CubeSpec, in_cube_box
 from plantsplat.log import get_logger
 from plantsplat.traits.cluster import dbscan, far_clusters_reason, select_plant
 from plantsplat.traits.config import ROBUST_KEYS, TraitsConfig, cube_edge_cm
@@ -184,9 +184,7 @@ def _drop_aruco_box(pts_cm, labels, gaussian: np.ndarray, cube_label: int | None
     whose centre is there (``gaussian [N]``: each point's Gaussian), before the plant is chosen. It catches what the
     cube's cluster missed: a reconstruction too rough for the box test, the cube fused with the plant, pieces of its
     faces in clusters of their own, and its Gaussians' ends reaching out of the box."""
-    h = size / 2 + 0.5
-    in_cube = ((np.abs(pts_cm[:, 0]) < h) & (np.abs(pts_cm[:, 1]) < h)
-               & (pts_cm[:, 2] > -0.5) & (pts_cm[:, 2] < size + 0.5))
+    in_cube = in_cube_box(pts_cm, size, 0.5)
     in_cube |= np.isin(gaussian, gaussian[in_cube])
     in_cube &= (labels >= 0) & (labels != (-1 if cube_label is None else cube_label))  # the cube's cluster: out
     if not in_cube.any():

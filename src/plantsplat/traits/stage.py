@@ -15,7 +15,6 @@ Usage:
 from __future__ import annotations
 
 import csv
-import dataclasses
 import io
 import json
 from pathlib import Path
@@ -168,9 +167,7 @@ def _height_bounds(out: dict, res: TraitResult, soil_z: float | None, disc: tupl
         return None
     soil = None
     if soil_z is not None:  # where it was not seen (a disc), the measurement lowered the rim to the plant's base
-        soil = soil_interval(soil_z, disc is None, POT_SLAB_CM, None if disc is None else res.soil_z)
-        if disc is not None:
-            soil = dataclasses.replace(soil, base_spread=res.base_spread)
+        soil = soil_interval(soil_z, disc is None, POT_SLAB_CM, None if disc is None else res.soil_z, res.base_spread)
         out["soil_interval_cm"] = [round(soil.low, 3), round(soil.high, 3)]
     lo, hi = height_bounds(float(P[:, 2].max()), soil, scale_se, out.get("height_extent_cm"))
     out["height_bounds_cm"] = [round(lo, 3), round(hi, 3)]
