@@ -6,7 +6,7 @@ lives on) and neither masks nor the cube are needed: which frames to match is ch
 incremental mapper registers them.
 
 Usage:
-    opts = SfmConfig()
+    opts = PosesConfig().sfm_options()
     db = extract_features(Path("ws/images"), names, Path("ws/.plantsplat/colmap"), opts)
     match_pairs(db, Path("ws/.plantsplat/colmap"), [("a.png", "b.png")], opts, "video")
     models = incremental(db, Path("ws/images"), Path("ws/.plantsplat/colmap/inc"), opts)
@@ -40,19 +40,20 @@ matches every time, at about 1.4 times the matching time (22 s instead of 15 s f
 
 @dataclass
 class SfmConfig:
-    """COLMAP settings of one SfM run (filled from :class:`plantsplat.poses.PosesConfig`)."""
+    """COLMAP settings of one SfM run. The user's options come from :class:`plantsplat.poses.PosesConfig`
+    (:meth:`~plantsplat.poses.PosesConfig.sfm_options`), the one source of their defaults; the rest are fixed here."""
 
-    camera_model: str = "RADIAL"
-    max_features: int = 2048
-    first_octave: int = -1
+    camera_model: str
+    max_features: int
+    first_octave: int
+    num_threads: int
+    seed: int
+    verbose: bool
     peak_threshold: float = 0.004
     max_image_size: int = 1600
     ransac_max_trials: int = 2000
     min_pose_inliers: int = 15
     min_pose_inlier_ratio: float = 0.1
-    num_threads: int = 2
-    seed: int = 0
-    verbose: bool = False
 
 
 @contextlib.contextmanager
