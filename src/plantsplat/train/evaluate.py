@@ -30,8 +30,10 @@ Usage:
 
 from __future__ import annotations
 
+import os
 import resource
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,7 +44,7 @@ from plantsplat.errors import PlantsplatError
 from plantsplat.io import write_image_atomic, write_json_atomic
 from plantsplat.log import get_logger, progress
 from plantsplat.train import data as D
-from plantsplat.train.metrics import load_lpips, lpips, mask_interior, psnr, ssim
+from plantsplat.train.metrics import load_lpips, lpips, mask_interior, masked_mean, psnr, ssim, ssim_map
 from plantsplat.train.model import sh_degree_of
 from plantsplat.workspace import Workspace
 
@@ -102,11 +104,12 @@ def _score_view(ev: _Evaluation, name: str, pred, img, alpha, viewmat, K, w, h, 
         stem = Path(name).stem
         write_image_atomic(save_dir / f"{stem}_render.png", _to_u8(pred))
         write_image_atomic(save_dir / f"{stem}_gt.png", _to_u8(gt))
-    row["composite"] = {"psnr": float(psnr(pred, gt)), "ssim": float(ssim(pred, gt)), "lpips": lpips(ev.net, pred, gt)}
+    smap = ssim_map(pred, gt)  # [h, w, 3]; object mode: the foreground's SSIM is its mean over the mask
+    row["composite"] = {"psnr": float(psnr(pred, gt)), "ssim": float(smap.mean()), "lpips": lpips(ev.net, pred, gt)}
     if alpha is not None and float(alpha.sum()) > 0:
         pred_m = pred * alpha + (1 - alpha) * bg
         x0, y0, x1, y1 = _box(alpha)
-        row["foreground"] = foreground_scores(pred, gt_fg, alpha)
+        row["foreground"] = foreground_scores(pred, gt_fg, alpha, smap if gt is gt_fg else None)
         row["foreground"]["lpips"] = lpips(ev.net, pred_m[y0:y1, x0:x1], gt_fg[y0:y1, x0:x1])
         if not ev.object_mode:
             row["pbr"] = {"psnr": float(psnr(pred_m, gt_fg)), "ssim": float(ssim(pred_m, gt_fg)),
@@ -192,7 +195,7 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
     n_px = 0
     renders_dir = Path(train_dir or ws.train_dir) / "renders"
     saved = _saved_views(names)
-    with torch.no_grad():
+    with torch.no_grad(), scoring_threads():
         for name in progress(names, "evaluating test views"):
             pred, img, alpha, viewmat, K, w, h, seconds = _render_view(ev, name, fps_repeats)
             render_seconds += seconds
@@ -237,6 +240,19 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
     return metrics
 
 
+@contextmanager
+def scoring_threads():
+    """Torch on every core this process may use (``OMP_NUM_THREADS``, which ``plantsplat batch`` sets per worker, else
+    all) while the test views are scored: training leaves torch on one thread (``TrainConfig.threads``), and LPIPS's
+    and SSIM's convolutions over whole frames are the evaluation's main cost."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS") or 0) or os.cpu_count() or 1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def _log_metrics(metrics: dict, metrics_path: Path) -> None:
     c = metrics["composite"]
     f = metrics["foreground"] or {}
@@ -278,11 +294,14 @@ def segment_renders(ws: Workspace, renders: dict[str, np.ndarray]) -> tuple[dict
         return None, str(e)
 
 
-def foreground_scores(pred: torch.Tensor, gt_fg: torch.Tensor, alpha: torch.Tensor) -> dict:
+def foreground_scores(pred: torch.Tensor, gt_fg: torch.Tensor, alpha: torch.Tensor,
+                      smap: torch.Tensor | None = None) -> dict:
     """PSNR and SSIM of a render ``pred`` ``[h, w, 3]`` against the frame composited through its mask ``gt_fg`` over
-    the mask ``alpha`` ``[h, w, 1]``, and the PSNR over the mask's interior (None when the mask has none)."""
+    the mask ``alpha`` ``[h, w, 1]``, and the PSNR over the mask's interior (None when the mask has none).
+    ``smap``: the SSIM map of ``pred`` against ``gt_fg`` when the caller has it already."""
     inner = mask_interior(alpha)
-    return {"psnr": float(psnr(pred, gt_fg, alpha)), "ssim": float(ssim(pred, gt_fg, alpha)),
+    smap = ssim_map(pred, gt_fg) if smap is None else smap
+    return {"psnr": float(psnr(pred, gt_fg, alpha)), "ssim": float(masked_mean(smap, alpha)),
             "psnr_interior": float(psnr(pred, gt_fg, inner)) if float(inner.sum()) > 0 else None}
 
 

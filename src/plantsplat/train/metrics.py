@@ -116,10 +116,20 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None)
         True
     """
     s = ssim_map(pred, gt)
-    if mask is None:
-        return s.mean()
-    m = mask.expand_as(s)
-    return (s * m).sum() / m.sum().clamp_min(1e-8)
+    return s.mean() if mask is None else masked_mean(s, mask)
+
+
+def masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean of ``values`` ``[H, W, C]`` weighted by ``mask`` ``[H, W, 1]`` (a per-pixel map such as SSIM's).
+
+    Example:
+        >>> import torch
+        >>> v = torch.arange(4.0).view(2, 2, 1); m = torch.tensor([[[1.0], [0.0]], [[1.0], [0.0]]])
+        >>> float(masked_mean(v, m))
+        1.0
+    """
+    m = mask.expand_as(values)
+    return (values * m).sum() / m.sum().clamp_min(1e-8)
 
 
 # ---------------------------------------------------------------------------------------------
