@@ -209,3 +209,31 @@ def test_the_same_frames_give_the_same_cameras(synth_run, tmp_path):
     a, b = transforms_c2w(read_json(ws.transforms_json)), transforms_c2w(read_json(ws2.transforms_json))
     assert set(a) == set(b) and max(np.abs(a[n] - b[n]).max() for n in a) < 1e-6
     assert again["similarity"]["scale"] == pytest.approx(report["similarity"]["scale"], rel=1e-9)
+
+
+def test_matching_processes_write_what_one_process_writes(synth_run, tmp_path, monkeypatch):
+    """Pairs dealt out to two matching processes give the same matches and verified geometries, byte for byte, as one
+    process matching them all (issue 43: parallel matching without COLMAP's threads, which change results)."""
+    import dataclasses
+    import sqlite3
+
+    from plantsplat.poses import sfm
+
+    _, ws, _ = synth_run
+    colmap = ws.root / ".plantsplat" / "colmap"
+    pairs = [tuple(line.split()) for line in (colmap / "pairs_main.txt").read_text().splitlines()][::6]
+    monkeypatch.setattr(sfm, "MIN_PAIRS_PER_WORKER", 20)
+    tables = {}
+    for n in (1, 2):
+        db = tmp_path / f"w{n}" / "database.db"
+        db.parent.mkdir()
+        shutil.copy(colmap / "database.db", db)
+        with sqlite3.connect(db) as c:
+            c.execute("DELETE FROM matches")
+            c.execute("DELETE FROM two_view_geometries")
+        sfm.match_pairs(db, db.parent, pairs, dataclasses.replace(PosesConfig().sfm_options(), num_threads=n), "t")
+        with sqlite3.connect(db) as c:
+            tables[n] = [sorted(c.execute(f"SELECT * FROM {t}").fetchall()) for t in ("matches", "two_view_geometries")]
+        assert not [p for p in db.parent.iterdir() if p.is_dir()] and (db.parent / "pairs_t.txt").is_file()
+    assert len(pairs) >= 40 and len(tables[1][0]) >= 40
+    assert tables[1] == tables[2]

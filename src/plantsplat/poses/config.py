@@ -110,8 +110,8 @@ class PosesConfig:
     """With --mapper auto, a model other than the incremental mapper's is kept only when the matched pairs the
     incremental model contradicts and it does not outnumber the reverse by this many standard deviations."""
     num_threads: int = 2
-    """CPU threads of feature extraction (matching, k-means and the mappers run on one: the same frames then give the
-    same cameras)."""
+    """CPU threads of feature extraction, and processes of matching (each on one thread, its own share of the pairs);
+    k-means and the mappers run on one thread: the same frames then give the same cameras."""
     seed: int = 0
     """Random seed (COLMAP's RANSAC and mapper)."""
     colmap_log: bool = False

@@ -15,8 +15,12 @@ Usage:
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import json
 import os
 import shutil
+import sqlite3
+import subprocess
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,7 +39,10 @@ matches at random (about one run in six, 2026-11-26); with one it gives the same
 MATCH_THREADS = 1
 """Threads of SIFT matching and two-view verification. With two, COLMAP's CPU matcher returned different matches for
 one or two of 988 pairs in about one run in five (2026-11-27), enough to move the mapping; one thread gives the same
-matches every time, at about 1.4 times the matching time (22 s instead of 15 s for 988 pairs)."""
+matches every time, at about 1.4 times the matching time (22 s instead of 15 s for 988 pairs); :func:`match_pairs`
+runs several one-thread processes instead."""
+MIN_PAIRS_PER_WORKER = 50
+"""Pairs below which another matching process costs more (start-up, a database copy) than it saves."""
 
 
 @dataclass
@@ -132,12 +139,55 @@ def _matching_options(opts: SfmConfig):
 
 
 def match_pairs(db: Path, work_dir: Path, pairs: list[tuple[str, str]], opts: SfmConfig, tag: str) -> None:
-    """Match and verify image ``pairs`` (names) into ``db``; pairs matched before are skipped by COLMAP."""
-    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
+    """Match and verify image ``pairs`` (names) into ``db``; pairs matched before are skipped by COLMAP.
 
+    With ``opts.num_threads`` > 1 the pairs are dealt out to that many processes
+    (:mod:`plantsplat.poses.match_worker`), each matching on one thread into its own copy of the database, and their
+    matches are gathered into ``db``. A pair's matches and verified geometry
+    depend on that pair alone (seeded RANSAC; tested), so the database is the same as one process would write,
+    where COLMAP's own threads change one or two pairs' matches in about one run in five (:data:`MATCH_THREADS`)."""
     if not pairs:
         return
-    pair_file = work_dir / f"pairs_{tag}.txt"
+    workers = max(1, min(opts.num_threads, len(pairs) // MIN_PAIRS_PER_WORKER))
+    (work_dir / f"pairs_{tag}.txt").write_text("".join(f"{a} {b}\n" for a, b in pairs))  # what was matched
+    if workers == 1:
+        match_pair_list(db, work_dir / f"pairs_{tag}.txt", pairs, opts)
+        return
+    parts = [work_dir / f"match_{tag}_{k}" for k in range(workers)]
+    procs = []
+    try:
+        for k, part in enumerate(parts):
+            procs.append(_start_worker(db, part, pairs[k::workers], opts))
+        for proc, part in zip(procs, parts):
+            if proc.wait() != 0:
+                lines = (part / "log.txt").read_text(errors="replace").strip().splitlines() or ["no message"]
+                raise PlantsplatError(f"{db}: a matching process failed ({lines[-1]}); see {part / 'log.txt'}")
+    finally:
+        for proc in procs:  # Ctrl-C or an error: no worker goes on matching
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    for part in parts:
+        _gather_matches(db, part / "database.db")
+        shutil.rmtree(part, ignore_errors=True)
+
+
+def _start_worker(db: Path, part: Path, pairs: list[tuple[str, str]], opts: SfmConfig) -> subprocess.Popen:
+    """A matching process for ``pairs`` on a copy of ``db`` in the fresh folder ``part`` (its output in ``log.txt``)."""
+    _fresh(part)
+    _copy_database(db, part / "database.db")
+    (part / "pairs.txt").write_text("".join(f"{a} {b}\n" for a, b in pairs))
+    with open(part / "log.txt", "wb") as log_file:
+        return subprocess.Popen([sys.executable, "-m", "plantsplat.poses.match_worker", str(part / "database.db"),
+                                 str(part / "pairs.txt"), json.dumps(dataclasses.asdict(opts))],
+                                stdin=subprocess.DEVNULL, stdout=log_file, stderr=subprocess.STDOUT)
+
+
+def match_pair_list(db: Path, pair_file: Path, pairs: list[tuple[str, str]], opts: SfmConfig) -> None:
+    """Match and verify ``pairs`` into ``db`` in this process, on :data:`MATCH_THREADS` threads (the list goes to
+    ``pair_file``, COLMAP's imported pairing)."""
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
+
     pair_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
     mopts, verif = _matching_options(opts)
     pairing = pycolmap.ImportedPairingOptions()
@@ -145,6 +195,23 @@ def match_pairs(db: Path, work_dir: Path, pairs: list[tuple[str, str]], opts: Sf
     with colmap_logging(opts.verbose):
         pycolmap.match_image_pairs(db, matching_options=mopts, pairing_options=pairing, verification_options=verif,
                                    device=pycolmap.Device.cpu)
+
+
+def _copy_database(src: Path, dst: Path) -> None:
+    """A consistent copy of a COLMAP database (SQLite's backup, whatever its journal holds)."""
+    with contextlib.closing(sqlite3.connect(src)) as a, contextlib.closing(sqlite3.connect(dst)) as b:
+        a.backup(b)
+
+
+def _gather_matches(db: Path, part: Path) -> None:
+    """The matches and verified two-view geometries of the database copy ``part`` into ``db`` (pairs ``db`` holds
+    already are kept as they are: the copy holds them unchanged)."""
+    with contextlib.closing(sqlite3.connect(db)) as c:
+        c.execute("ATTACH DATABASE ? AS part", (str(part),))
+        for table in ("matches", "two_view_geometries"):
+            c.execute(f"INSERT OR IGNORE INTO main.{table} SELECT * FROM part.{table}")
+        c.commit()
+        c.execute("DETACH DATABASE part")
 
 
 def match_exhaustive(db: Path, opts: SfmConfig) -> None:

@@ -1,0 +1,26 @@
+"""One matching process of :func:`plantsplat.poses.sfm.match_pairs`: ``python -m plantsplat.poses.match_worker DB PAIRS
+OPTIONS``, where ``DB`` is its own copy of the COLMAP database, ``PAIRS`` the file of image-name pairs to match (one
+pair per line) and ``OPTIONS`` the :class:`~plantsplat.poses.sfm.SfmConfig` as JSON. A separate interpreter rather
+than :mod:`multiprocessing`, so that no user's main module is imported again in the worker. Ctrl-C is left to the
+stage, which stops the workers."""
+
+from __future__ import annotations
+
+import json
+import signal
+import sys
+from pathlib import Path
+
+from plantsplat.poses.sfm import SfmConfig, match_pair_list
+
+
+def main(argv: list[str]) -> int:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    db, pair_file, options = Path(argv[0]), Path(argv[1]), SfmConfig(**json.loads(argv[2]))
+    pairs = [tuple(line.split()) for line in pair_file.read_text().splitlines() if line.strip()]
+    match_pair_list(db, pair_file, pairs, options)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
