@@ -23,6 +23,8 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -81,7 +83,7 @@ def calibrated_cube(ws: Workspace):
 def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool = False):
     """The ``3d`` backend: ``({name: (plant, cube) bool masks}, per-frame facts, capture facts)``."""
     from plantsplat.segment.decide import DecideConfig
-    from plantsplat.segment.frame import distortion_map, object_prior, refine, to_frame
+    from plantsplat.segment.frame import distortion_map, object_prior, to_frame
     from plantsplat.segment.object3d import object_model
     from plantsplat.segment.scene import scene_model
     from plantsplat.segment.stored import save_object
@@ -96,20 +98,39 @@ def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool 
     maps = distortion_map(views[0]) if views else None
     parts: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     facts: dict[str, dict] = {}
-    for name in progress(names, "segment: masks from the 3D object"):
-        view = by_name.get(name)
-        if view is None:
-            facts[name] = {"confidence": None, "note": "no camera pose (not registered by the poses stage)"}
-            continue
-        rgb = read_image(ws.images_dir / name)
-        plant, cube = (to_frame(p, maps) for p in object_prior(obj, view))
-        prior = np.maximum(plant, cube)
-        mask = refine(rgb, prior, cfg.refine_band_px) if cfg.refine_band_px > 0 else prior > 0.5
-        parts[name] = (mask & ~(cube > 0.5), mask & (cube > 0.5))
-        facts[name] = {"confidence": round(mask_iou(prior > 0.5, mask), 4)}
+    pending: deque = deque()  # (name, the cube's share, the prior's mask, the refined mask's future), in frame order
+    workers = os.cpu_count() or 1
+    with ThreadPoolExecutor(max_workers=workers) as pool:  # GrabCut releases the GIL
+        for name in progress(names, "segment: masks from the 3D object"):
+            view = by_name.get(name)
+            if view is None:
+                facts[name] = {"confidence": None, "note": "no camera pose (not registered by the poses stage)"}
+                continue
+            plant, cube = (to_frame(p, maps) for p in object_prior(obj, view))  # rendered here: numba's threads
+            prior = np.maximum(plant, cube)
+            pending.append((name, cube > 0.5, prior > 0.5, pool.submit(_refined, ws, name, prior, cfg.refine_band_px)))
+            while len(pending) > 2 * workers:  # a few frames in flight, not all of them in memory
+                _finish_mask(pending.popleft(), parts, facts)
+        while pending:
+            _finish_mask(pending.popleft(), parts, facts)
     info = {"object": obj.info, "calibrated": obj.cube is not None, "sfm_points": int(len(points)),
             "timing": {"scene_model_s": round(t_model, 2)}}
     return parts, facts, info
+
+
+def _refined(ws: Workspace, name: str, prior: np.ndarray, band_px: int) -> np.ndarray:
+    """Frame ``name``'s mask: the prior's outline refined on the frame (:func:`plantsplat.segment.frame.refine`)."""
+    from plantsplat.segment.frame import refine
+
+    return refine(read_image(ws.images_dir / name), prior, band_px) if band_px > 0 else prior > 0.5
+
+
+def _finish_mask(item: tuple, parts: dict, facts: dict) -> None:
+    """A refined mask split into plant and cube, with the segmenter's confidence (how little refining moved it)."""
+    name, cube, prior, future = item
+    mask = future.result()
+    parts[name] = (mask & ~cube, mask & cube)
+    facts[name] = {"confidence": round(mask_iou(prior, mask), 4)}
 
 
 def segment_workspace(ws: Workspace | str | os.PathLike, cfg: SegmentConfig | None = None, resume: bool = False

@@ -103,9 +103,11 @@ def to_frame(prior: np.ndarray, maps: tuple[np.ndarray, np.ndarray] | None) -> n
     return cv2.remap(prior, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
-def refine(rgb: np.ndarray, prior: np.ndarray, band_px: int = 6, iterations: int = 3, margin_px: int = 24) -> np.ndarray:
+def refine(rgb: np.ndarray, prior: np.ndarray, band_px: int = 6, iterations: int = 3, margin_px: int = 24,
+           seed: int = 0) -> np.ndarray:
     """The mask ``[H, W]`` bool: ``prior > 0.5`` with its outline moved onto the image's edges by GrabCut within
-    ``band_px`` of it (in the prior's bounding box grown by ``margin_px``, where all the work is)."""
+    ``band_px`` of it (in the prior's bounding box grown by ``margin_px``, where all the work is). ``seed``: of
+    GrabCut's k-means, so that a frame's mask does not depend on the frames refined before it on the same thread."""
     import cv2
 
     fg = prior > 0.5
@@ -124,6 +126,7 @@ def refine(rgb: np.ndarray, prior: np.ndarray, band_px: int = 6, iterations: int
     m[shrunk] = cv2.GC_FGD
     if (m == cv2.GC_FGD).any() and (m == cv2.GC_BGD).any():
         bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
+        cv2.setRNGSeed(seed)  # GrabCut's k-means draws from this thread's generator: the same mask on any thread
         cv2.grabCut(np.ascontiguousarray(rgb[y0:y1, x0:x1, ::-1]), m, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
     out = np.zeros_like(fg)
     out[y0:y1, x0:x1] = (m == cv2.GC_FGD) | (m == cv2.GC_PR_FGD)
