@@ -89,30 +89,27 @@ def poses_stage(ws: Workspace, cfg: PosesConfig, force: bool = False) -> dict:
 
 
 def segment_stage(ws: Workspace, cfg: SegmentConfig, force: bool = False) -> dict:
-    """Masks of the plant and the cube (:func:`plantsplat.segment.segment_workspace`)."""
-    from plantsplat.segment import outputs, segment_workspace
+    """Masks of the plant and the cube (:func:`plantsplat.segment.stage.run`); an interrupted run with the same
+    options and inputs resumes from the checkpoint of its quick scene model."""
+    from plantsplat.segment import stage as segmentation  # deferred: it loads torch and OpenCV
 
     check_options(cfg, "segment")
     check_masks_are_ours(ws)
     require_ok(ws, "poses")
-    inputs = [ws.images_dir, ws.poses_json, ws.sparse_dir, ws.transforms_json, ws.markers_json]
-    inputs += [cfg.import_masks] if cfg.import_masks is not None else []
-    return run_stage(ws, "segment", _without(cfg, "preview", "device"), inputs, outputs(ws),
-                     lambda resume: segment_workspace(ws, cfg, resume), force)
+    return run_stage(ws, "segment", _without(cfg, "preview", "device"), segmentation.inputs(ws, cfg),
+                     segmentation.outputs(ws), lambda resume: segmentation.run(ws, cfg, resume), force)
 
 
 def train_stage(ws: Workspace, cfg: TrainConfig, force: bool = False) -> dict:
-    """The object-centric (or full-scene) Gaussian model (:func:`plantsplat.train.train_workspace`); an
+    """The object-centric (or full-scene) Gaussian model (:func:`plantsplat.train.stage.run`); an
     interrupted run with the same options and inputs resumes from its checkpoint."""
-    from plantsplat.train import train_workspace
-    from plantsplat.train.checkpoint import train_outputs
+    from plantsplat.train import stage as training  # deferred: it loads torch
 
     check_options(cfg, "train")
     require_ok(ws, "poses")
     require_ok(ws, "segment")
-    inputs = [ws.images_dir, ws.masks_dir, ws.segment_json, ws.sparse_dir, ws.transforms_json]
-    return run_stage(ws, "train", _without(cfg, "threads", "checkpoint_seconds"), inputs, train_outputs(ws, cfg),
-                     lambda resume: train_workspace(ws, cfg, resume=resume), force)
+    return run_stage(ws, "train", _without(cfg, "threads", "checkpoint_seconds"), training.inputs(ws, cfg),
+                     training.outputs(ws, cfg), lambda resume: training.run(ws, cfg, resume=resume), force)
 
 
 def export_stage(ws: Workspace, cfg: ExportConfig, force: bool = False) -> dict:
