@@ -7,7 +7,7 @@ path; run times per stage. A part whose input is missing or unreadable is named 
 the command that produces it; it never stops the report.
 
 Usage:
-    from plantsplat.report import write_report
+    from plantsplat.report.plant import write_report
     write_report("ws/plant_01")
 """
 
@@ -20,8 +20,10 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
+from plantsplat import __version__ as version
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_image, read_json, write_text_atomic
 from plantsplat.log import get_logger, progress
@@ -180,8 +182,6 @@ def _viewer_section(ws: Workspace, parts: _Parts, opts: ReportConfig) -> str:
 
 
 def _renders_section(ws: Workspace, parts: _Parts, opts: ReportConfig) -> str:
-    import cv2
-
     rdir = ws.train_dir / "renders"
     pairs = render_pairs(rdir) if rdir.is_dir() else []
     if not pairs:
@@ -310,8 +310,6 @@ def _runtimes_section(ws: Workspace, parts: _Parts) -> str:
 
 def build_report_html(ws: Workspace, opts: ReportConfig | None = None) -> tuple[str, _Parts]:
     """The report for ``ws`` as an HTML string, with the list of present and missing parts."""
-    from plantsplat import __version__ as version
-
     opts = opts or ReportConfig()
     parts = _Parts()
     steps = [
