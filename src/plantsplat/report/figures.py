@@ -11,9 +11,12 @@ import io
 import json
 from pathlib import Path
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
 
 from plantsplat.errors import PlantsplatError
+from plantsplat.segment.preview import contact_sheet as sheet_of
 from plantsplat.workspace import Workspace
 
 
@@ -32,8 +35,6 @@ def contact_sheet(ws: Workspace, max_frames: int = 24, tile_height: int = 320, c
 
     Returns ``(sheet [H, W, 3] uint8, frames shown, frames with a mask)``.
     """
-    from plantsplat.segment.preview import contact_sheet as sheet_of
-
     names = ws.image_names()
     if not names:
         raise PlantsplatError(f"{ws.images_dir}: no frames")
@@ -67,11 +68,7 @@ def camera_path_png(c2w: np.ndarray, scene_points: np.ndarray | None = None) -> 
     ``c2w`` [N, 4, 4] camera-to-world in OpenGL axes (the camera looks along its -z), world z up, cm;
     ``scene_points`` [M, 3] (optional) are drawn as a grey cloud for reference.
     """
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     centres = c2w[:, :3, 3]  # [N, 3]
     look = -c2w[:, :3, 2]  # [N, 3] viewing directions
     span = float(np.ptp(centres, axis=0).max()) if len(centres) > 1 else 1.0

@@ -17,7 +17,10 @@ from collections.abc import Mapping, Sequence
 from importlib import resources
 from typing import Any
 
+import cv2
 import numpy as np
+
+from plantsplat.summary import flatten as flatten_keys
 
 
 def esc(text: Any) -> str:
@@ -116,8 +119,6 @@ def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
         >>> flatten({"name": "a", "composite": {"psnr": 30.0}})
         {'name': 'a', 'composite psnr': 30.0}
     """
-    from plantsplat.summary import flatten as flatten_keys
-
     return flatten_keys(d, " ", prefix)
 
 
@@ -131,8 +132,6 @@ def img_tag(data: bytes, mime: str = "image/png", alt: str = "", cls: str = "", 
 
 def encode_image(rgb: np.ndarray, fmt: str = ".jpg", quality: int = 85) -> bytes:
     """Encode an RGB(A) uint8 image [H, W, C] as JPEG or PNG bytes."""
-    import cv2
-
     img = np.asarray(rgb)
     if img.ndim == 3 and img.shape[2] == 3:
         img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)

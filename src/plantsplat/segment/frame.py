@@ -15,6 +15,7 @@ Usage:
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import torch
 
@@ -23,8 +24,6 @@ from plantsplat.segment.object3d import ObjectModel, camera_points, render_value
 
 def cube_depth(cube, view) -> tuple[np.ndarray, np.ndarray]:
     """The calibrated cube in a view: ``(silhouette [H, W] bool, depth of its nearest face [H, W], inf outside)``."""
-    import cv2
-
     h = cube.size / 2
     corners = np.array([[x, y, z] for x in (-h, h) for y in (-h, h) for z in (0.0, cube.size)])
     uv, z = camera_points(corners, view)
@@ -84,8 +83,6 @@ def object_prior(obj: ObjectModel, view) -> tuple[np.ndarray, np.ndarray]:
 def distortion_map(view) -> tuple[np.ndarray, np.ndarray] | None:
     """Where each pixel of the (distorted) frame lies in the view's pinhole image: the two ``cv2.remap`` maps that
     bring a rendered prior onto the frame. None for a camera without distortion."""
-    import cv2
-
     if view.dist.size == 0 or not np.any(np.abs(view.dist) > 0):
         return None
     ys, xs = np.mgrid[0:view.height, 0:view.width].astype(np.float64)
@@ -96,8 +93,6 @@ def distortion_map(view) -> tuple[np.ndarray, np.ndarray] | None:
 
 def to_frame(prior: np.ndarray, maps: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
     """A prior rendered through the pinhole camera, moved onto the distorted frame (see :func:`distortion_map`)."""
-    import cv2
-
     if maps is None:
         return prior
     return cv2.remap(prior, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
@@ -106,8 +101,6 @@ def to_frame(prior: np.ndarray, maps: tuple[np.ndarray, np.ndarray] | None) -> n
 def refine(rgb: np.ndarray, prior: np.ndarray, band_px: int = 6, iterations: int = 3, margin_px: int = 24) -> np.ndarray:
     """The mask ``[H, W]`` bool: ``prior > 0.5`` with its outline moved onto the image's edges by GrabCut within
     ``band_px`` of it (in the prior's bounding box grown by ``margin_px``, where all the work is)."""
-    import cv2
-
     fg = prior > 0.5
     if not fg.any():
         return fg

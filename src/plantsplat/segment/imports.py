@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from plantsplat.errors import PlantsplatError
@@ -59,7 +60,5 @@ def import_masks(folder: Path, ws: Workspace, names: list[str]) -> dict[str, np.
 
 
 def _has_alpha(path: Path) -> bool:
-    import cv2
-
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     return img is not None and img.ndim == 3 and img.shape[2] == 4

@@ -29,10 +29,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from plantsplat.cube import CubeSpec, in_cube_box
 from plantsplat.log import get_logger
+from plantsplat.poses.checks import orbit_centre
+from plantsplat.raster import rasterize
 from plantsplat.segment.decide import DecideConfig, decide_plant
+from plantsplat.train.model import sh_to_rgb
 
 log = get_logger(__name__)
 
@@ -51,8 +56,6 @@ class ObjectModel:
 
 def orbit_axis(c2ws: list[np.ndarray]) -> np.ndarray:
     """The point closest (least squares) to every camera's optical axis: what the cameras circle. ``[3]``"""
-    from plantsplat.poses.checks import orbit_centre
-
     c = orbit_centre(c2ws)
     if c is None:
         return np.mean([M[:3, 3] for M in c2ws], axis=0)
@@ -97,8 +100,6 @@ def _scaled_K(view, scale: float) -> torch.Tensor:
 def render_values(params: dict, values: torch.Tensor, view, scale: float = 1.0, keep: torch.Tensor | None = None):
     """Composite per-Gaussian ``values`` ``[N, 3]`` into a view (``scale`` times its size): ``(image [h, w, 3], alpha
     [h, w])`` as numpy. ``keep`` [N] bool draws only some Gaussians."""
-    from plantsplat.raster import rasterize
-
     mu, q, s, o = params["means"], params["quats"], params["scales"], params["opacities"]
     if keep is not None:
         mu, q, s, o, values = mu[keep], q[keep], s[keep], o[keep], values[keep]
@@ -296,8 +297,6 @@ def pot_solid(grid: Grid, free: np.ndarray, seen: np.ndarray, axis_xy: np.ndarra
     """The thick solid standing around the axis (pot and soil): voxels no view sees through, opened by a ball of
     ``thickness`` (leaves, petioles and fruit are thinner and vanish), the pieces within ``near_axis`` of the
     axis, grown back by the ball and one voxel (their surface). ``[X, Y, Z]`` bool."""
-    from scipy import ndimage
-
     c = grid.centres().reshape(*grid.shape, 3)
     solid = (free == 0) & (seen >= min_seen) & (c[..., 2] > 0)
     if cube is not None:  # the cube is a solid too, known exactly: not the pot
@@ -317,8 +316,6 @@ def pot_solid(grid: Grid, free: np.ndarray, seen: np.ndarray, axis_xy: np.ndarra
 def _weigh_evidence(params: dict, mu: np.ndarray, candidate: np.ndarray, orbit_radius: float, cfg: DecideConfig):
     """The candidates' colours and neighbours weighed (:func:`decide_plant`) against every opaque Gaussian that is no
     candidate."""
-    from plantsplat.train.model import sh_to_rgb
-
     rgb = sh_to_rgb(params["sh0"][:, 0, :]).clamp(0, 1).numpy().astype(np.float64)
     opacity = torch.sigmoid(params["opacities"]).numpy().reshape(-1).astype(np.float64)
     opaque = opacity > cfg.sure_opacity
@@ -356,8 +353,6 @@ def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: n
     region = radial < reach * cam_radial
     info: dict = {"axis": np.round(centre, 3).tolist(), "reach": round(reach * cam_radial, 3)}
     if len(sfm_points):
-        from scipy.spatial import cKDTree
-
         region &= cKDTree(sfm_points).query(mu, distance_upper_bound=sfm_reach * cam_radial)[0] < np.inf
     if cube is not None:
         region &= mu[:, 2] > ground_cm

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 
+import cv2
 import numpy as np
 
 from plantsplat.io import read_image
@@ -17,8 +18,6 @@ from plantsplat.io import read_image
 
 def overlay(rgb: np.ndarray, mask: np.ndarray, excluded: bool = False) -> np.ndarray:
     """Frame ``[H, W, 3]`` with the background dimmed and tinted and the mask's outline drawn."""
-    import cv2
-
     m = mask > 0 if mask.dtype != bool else mask
     out = rgb.astype(np.float32)
     tint = np.array([40, 40, 120], np.float32)  # dim bluish background
@@ -46,8 +45,6 @@ def contact_sheet(
 
     Returns an RGB uint8 image ``[rows * tile_height (+ labels), columns * tile_width, 3]``.
     """
-    import cv2
-
     n = len(images)
     if n == 0:
         raise ValueError("no images for the contact sheet")

@@ -24,7 +24,9 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
+import torch
 
 from plantsplat.errors import PlantsplatError, UsageError
 from plantsplat.io import read_image
@@ -83,8 +85,8 @@ def random_checkpoint(config: str, path: str | os.PathLike, seed: int = 0) -> Pa
     Usage:
         random_checkpoint("configs/sam2.1/sam2.1_hiera_t.yaml", "/tmp/sam2.1_hiera_tiny.pt")
     """
+    # deferred: SAM 2 and hydra, omegaconf (which come with it) are optional
     import sam2  # noqa: F401  (registers SAM-2's configs with hydra)
-    import torch
     from hydra import compose
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
@@ -98,8 +100,6 @@ def random_checkpoint(config: str, path: str | os.PathLike, seed: int = 0) -> Pa
 
 def _prompt(mask: np.ndarray, n_points: int = 3) -> tuple[np.ndarray, np.ndarray] | None:
     """Box ``[4]`` (x0, y0, x1, y1) and positive points ``[n, 2]`` (x, y) from a bool mask ``[H, W]``."""
-    import cv2
-
     ys, xs = np.nonzero(mask)
     if len(xs) < 20:
         return None
@@ -130,9 +130,7 @@ def sam2_segment(
     make sense for tests of the plumbing). Returns per-frame bool masks ``[H, W]`` (plant or cube)
     and facts for ``segment.json``.
     """
-    import cv2
-    import torch
-    from sam2.build_sam import build_sam2_video_predictor
+    from sam2.build_sam import build_sam2_video_predictor  # deferred: SAM 2 is optional
 
     if device is None:
         device = "cuda" if torch.cuda.is_available() else "cpu"

@@ -13,6 +13,10 @@ from __future__ import annotations
 from plantsplat.log import get_logger
 from plantsplat.segment.config import SegmentConfig
 from plantsplat.segment.stored import scene_dir
+from plantsplat.train.checkpoint import load_model
+from plantsplat.train.config import TrainConfig
+from plantsplat.train.data import load_scene
+from plantsplat.train.trainer import train_workspace
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
@@ -20,11 +24,6 @@ log = get_logger(__name__)
 def scene_model(ws: Workspace, cfg: SegmentConfig, resume: bool = False):
     """Train the quick model (``resume``: from an interrupted run's checkpoint); returns ``(params, views,
     sfm points [P, 3])`` (tensors detached)."""
-    from plantsplat.train.checkpoint import load_model
-    from plantsplat.train.config import TrainConfig
-    from plantsplat.train.data import load_scene
-    from plantsplat.train.trainer import train_workspace
-
     out = scene_dir(ws)
     log.info("segment: a quick model of the whole scene (%d steps at %d px) to find the plant in 3D",
              cfg.scene_steps, cfg.scene_resolution)

@@ -18,12 +18,9 @@ from plantsplat.synth.config import FORMAT, SynthConfig
 
 def generate(cfg: SynthConfig) -> dict:
     """Render the capture described by ``cfg``; returns ``{"paths": {...}, "timings": {...}, ...}``."""
-    from plantsplat.synth.capture import generate as _generate
+    from plantsplat.synth.capture import generate as _generate  # deferred: it loads moderngl, OpenCV and PyAV
 
     return _generate(cfg)
-
-
-__all__ = ["FORMAT", "SynthConfig", "generate"]
 
 
 __all__ = ["FORMAT", "SynthConfig", "generate"]

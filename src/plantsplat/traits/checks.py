@@ -36,6 +36,8 @@ from plantsplat.checks import Check
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_json
 from plantsplat.log import get_logger
+from plantsplat.segment.object3d import find_pot, orbit_axis
+from plantsplat.train.data import load_scene
 
 log = get_logger(__name__)
 
@@ -110,9 +112,6 @@ def _soil_of(soil_z: float, rim_z: float, centre, rim_radius, source: str) -> tu
 
 def _pot_from_sfm(ws):
     """The pot (:class:`plantsplat.segment.object3d.Pot`) found among the poses stage's SfM points, or None."""
-    from plantsplat.segment.object3d import find_pot, orbit_axis
-    from plantsplat.train.data import load_scene
-
     try:
         scene = load_scene(ws, need_masks=False, load_images=False)
     except PlantsplatError:

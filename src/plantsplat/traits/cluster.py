@@ -24,6 +24,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
 
 from plantsplat.log import get_logger
 
@@ -38,8 +40,6 @@ def knn_spacing(points: np.ndarray, k: int = 8, sample: int = 5000, seed: int = 
         >>> knn_spacing(g, k=1)
         1.0
     """
-    from scipy.spatial import cKDTree
-
     pts = np.asarray(points, dtype=np.float64)  # [N, 3]
     if len(pts) <= k:
         raise ValueError(f"need more than {k} points to measure the point spacing, got {len(pts)}")
@@ -82,9 +82,6 @@ def dbscan(
     default ``points``) is the cloud whose point spacing sets the automatic radius (the Gaussian
     centres when ``points`` also holds extent samples).
     """
-    import open3d as o3d
-    from scipy.spatial import cKDTree
-
     pts = np.asarray(points, dtype=np.float64)  # [N, 3]
     rng = np.random.default_rng(seed)
     if len(pts) > max_points:
@@ -153,8 +150,6 @@ class PlantSelection:
 def _linked_groups(pts, labels, pieces: list[int], sizes: dict[int, int], merge_distance: float | None):
     """``root(label)``: the group of each piece, pieces linked by gaps of at most ``merge_distance`` (single
     linkage); one group for all without a distance."""
-    from scipy.spatial import cKDTree
-
     group = {i: pieces[0] if merge_distance is None else i for i in pieces}
 
     def root(i):

@@ -8,9 +8,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
 
 from plantsplat import traitdefs
+from plantsplat.io import atomic_path
 
 
 def _subsample(n: int, k: int, seed: int = 0) -> np.ndarray:
@@ -26,13 +29,7 @@ def traits_figure(result, path: str | Path, title: str = "", max_points: int = 3
     centre and axes and the width1/width2 extents as a rectangle. Right: side view (the points
     projected on the major axis vs z) with the ground line and the height.
     """
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from plantsplat.io import atomic_path
-
     P = result.plant_points  # [M, 3]
     if P is None or len(P) < 4:
         raise ValueError("the result has no plant points to draw")

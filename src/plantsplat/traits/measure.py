@@ -37,6 +37,7 @@ import time
 from dataclasses import asdict
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from plantsplat import traitdefs
 from plantsplat.cube import CubeSpec, in_cube_box
@@ -200,8 +201,6 @@ def _cube_fragments(pts_cm, labels, excl: set, size: float) -> list[int]:
     """Small clusters that belong to the cube rather than to the plant: nearer the cube's box than the plant's body
     (the largest cluster left) and under a twentieth of its size. Pieces of the cube's faces whose Gaussians sit
     just outside its box make such clusters; a leaf apart from its petiole hangs nearer its own plant."""
-    from scipy.spatial import cKDTree  # deferred: slow to load, and the CLI loads this package for its options
-
     ids = [i for i in range(int(labels.max() + 1)) if i not in excl and (labels == i).any()]
     if len(ids) < 2:
         return []

@@ -20,8 +20,11 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
 
+from plantsplat.io import atomic_path
 from plantsplat.traitdefs import TRAIT_LABELS, TRAIT_UNITS
 
 
@@ -209,13 +212,7 @@ def scatter_plots(
     Usage:
         scatter_plots(estimates, truths, ["height_cm"], "bench/scatter.png")
     """
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from plantsplat.io import atomic_path
-
     table = accuracy_table(estimates, truths, traits)
     fig, axs = plt.subplots(1, len(traits), figsize=(4.3 * len(traits), 4.3), squeeze=False)
     for ax, key in zip(axs[0], traits):
