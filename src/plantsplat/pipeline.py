@@ -26,6 +26,7 @@ from plantsplat import __version__
 from plantsplat.errors import PlantsplatError, UsageError
 from plantsplat.export.config import ExportConfig
 from plantsplat.frames.config import FramesConfig
+from plantsplat.groundtruth import compare_traits, load_ground_truth
 from plantsplat.io import read_json, write_json_atomic
 from plantsplat.lock import workspace_lock
 from plantsplat.log import get_logger
@@ -126,7 +127,7 @@ def traits_stage(ws: Workspace, cfg: TraitsConfig, force: bool = False, points: 
                  calibrated: bool | None = None, figure: bool = True) -> dict:
     """Traits and the checks that decide their quality (:func:`plantsplat.traits.stage.run`);
     ``points``: measure this PLY instead of the workspace's export."""
-    from plantsplat.traits import stage
+    from plantsplat.traits import stage  # deferred: it loads SciPy, Open3D, torch and matplotlib
 
     check_options(cfg, "traits")
     if points is None:
@@ -148,7 +149,7 @@ def evaluate_stage(ws: Workspace, ground_truth: Path, plant_id: str | None, forc
 
 def report_stage(ws: Workspace) -> dict:
     """``report.html`` (always written again: it shows every stage as it is now)."""
-    from plantsplat.report import write_report
+    from plantsplat.report.plant import write_report  # deferred: it loads OpenCV and matplotlib
 
     return {"report": str(write_report(ws))}
 
@@ -167,8 +168,6 @@ def evaluation_json(ws: Workspace) -> Path:
 
 def evaluate_traits(ws: Workspace, ground_truth: Path | None, plant_id: str | None = None) -> dict:
     """Compare ``WS/traits.json`` with ground truth; writes ``WS/evaluation.json``."""
-    from plantsplat.groundtruth import compare_traits, load_ground_truth
-
     if ground_truth is None or not str(ground_truth).strip():
         raise UsageError("evaluate needs --ground-truth (a synth ground_truth.json or a CSV of measured traits)")
     traits = read_json(ws.require(ws.traits_json, "traits"))
