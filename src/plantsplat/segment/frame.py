@@ -21,6 +21,13 @@ import torch
 
 from plantsplat.segment.object3d import ObjectModel, camera_points, render_values
 
+SUBPIXEL_BITS = 4
+"""The cube's silhouette is filled with its corners in fixed point with this many fractional bits (OpenCV's shift)."""
+NEAR_REACH = 1.2
+"""Gaussians nearer a camera than the object's axis less this many times its reach are floaters of the quick model."""
+GRABCUT_MODEL_SIZE = 65
+"""Length of GrabCut's colour model arrays (OpenCV's fixed size: 5 Gaussians of 13 numbers)."""
+
 
 def cube_depth(cube, view) -> tuple[np.ndarray, np.ndarray]:
     """The calibrated cube in a view: ``(silhouette [H, W] bool, depth of its nearest face [H, W], inf outside)``."""
@@ -32,7 +39,7 @@ def cube_depth(cube, view) -> tuple[np.ndarray, np.ndarray]:
     if (z <= 1e-6).any():
         return sil.astype(bool), depth
     hull = cv2.convexHull((uv - 0.5).astype(np.float32)).reshape(-1, 2)  # OpenCV draws pixel centres at integers
-    cv2.fillConvexPoly(sil, np.round(hull * 16).astype(np.int32), 1, shift=4)
+    cv2.fillConvexPoly(sil, np.round(hull * (1 << SUBPIXEL_BITS)).astype(np.int32), 1, shift=SUBPIXEL_BITS)
     ys, xs = np.nonzero(sil)
     # ray / box intersection (slab method) in the cube frame for the silhouette's pixels
     R, t = view.viewmat[:3, :3], view.viewmat[:3, 3]
@@ -59,7 +66,7 @@ def object_prior(obj: ObjectModel, view) -> tuple[np.ndarray, np.ndarray]:
     # nothing stands between the camera and the object (the filmer walks there): Gaussians nearer than the object's
     # region are floaters of the quick model, which can hang in front of one camera and veil the whole frame
     axis_depth = float(view.viewmat[2, :3] @ obj.axis + view.viewmat[2, 3])
-    keep_np = camera_points(mu, view)[1] > axis_depth - 1.2 * obj.info["reach"]
+    keep_np = camera_points(mu, view)[1] > axis_depth - NEAR_REACH * obj.info["reach"]
     cube = np.zeros((view.height, view.width), np.float32)
     if obj.cube is not None:  # Gaussians of the cube give way to the exact cube
         h = obj.cube.size / 2
@@ -116,7 +123,7 @@ def refine(rgb: np.ndarray, prior: np.ndarray, band_px: int = 6, iterations: int
     m[crop > 0] = cv2.GC_PR_FGD
     m[shrunk] = cv2.GC_FGD
     if (m == cv2.GC_FGD).any() and (m == cv2.GC_BGD).any():
-        bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
+        bgd, fgd = np.zeros((1, GRABCUT_MODEL_SIZE)), np.zeros((1, GRABCUT_MODEL_SIZE))
         cv2.grabCut(np.ascontiguousarray(rgb[y0:y1, x0:x1, ::-1]), m, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
     out = np.zeros_like(fg)
     out[y0:y1, x0:x1] = (m == cv2.GC_FGD) | (m == cv2.GC_PR_FGD)

@@ -59,7 +59,17 @@ from plantsplat.workspace import Workspace
 log = get_logger(__name__)
 
 SEGMENT_VERSION = 2
+"""Version of ``segment.json``'s layout."""
 PREVIEW_NAME = "masks_preview.png"
+"""The contact sheet's file name in the workspace."""
+FRACTION_DIGITS = 5
+"""Decimals of the foreground shares in ``segment.json``."""
+PREVIEW_LEAST_SURE = 4
+"""The contact sheet shows the frames the segmenter is least sure of first, this many ..."""
+PREVIEW_SPREAD = 12
+"""... then this many frames spread evenly over the capture ..."""
+PREVIEW_TILES = 16
+"""... and at most this many frames in all."""
 
 
 def preview_path(ws: Workspace) -> Path:
@@ -175,7 +185,8 @@ def _write_outputs(ws: Workspace, names: list[str], masks: dict[str, np.ndarray]
     per_frame, excluded = [], []
     for n in names:
         m = masks.get(n)
-        row = {"name": n, "foreground_fraction": round(float(m.mean()), 5) if m is not None else 0.0, **facts.get(n, {})}
+        share = round(float(m.mean()), FRACTION_DIGITS) if m is not None else 0.0
+        row = {"name": n, "foreground_fraction": share, **facts.get(n, {})}
         per_frame.append(row)
         if m is None or row["foreground_fraction"] < cfg.min_plant_fraction:
             reason = row.get("note") or f"no plant found (the mask covers {row['foreground_fraction']:.4%} of the frame)"
@@ -201,8 +212,9 @@ def _write_outputs(ws: Workspace, names: list[str], masks: dict[str, np.ndarray]
         "image_size": [shape[1], shape[0]], "capture": info,
         "timing": {"total_s": round(seconds, 2), "seconds_per_frame": round(seconds / len(names), 4),
                    **info.pop("timing", {})},
-        "foreground_fraction": {"mean": round(float(np.mean(fg)), 5), "min": round(float(np.min(fg)), 5),
-                                "max": round(float(np.max(fg)), 5)},
+        "foreground_fraction": {"mean": round(float(np.mean(fg)), FRACTION_DIGITS),
+                                "min": round(float(np.min(fg)), FRACTION_DIGITS),
+                                "max": round(float(np.max(fg)), FRACTION_DIGITS)},
         "confidence": ({"mean": round(float(np.mean(conf)), 4), "min": round(float(np.min(conf)), 4),
                         "least_sure": min((r for r in per_frame if r.get("confidence") is not None),
                                           key=lambda r: r["confidence"])["name"]} if conf else None),
@@ -224,8 +236,8 @@ def _preview(ws: Workspace, names: list[str], per_frame: list[dict], excluded: s
     """The contact sheet: the least sure frames first, then frames spread over the capture."""
     sure = [r.get("confidence") for r in per_frame]
     order = sorted(range(len(names)), key=lambda i: (sure[i] is None, sure[i] if sure[i] is not None else 1.0))
-    pick = order[:4] + [int(i) for i in np.linspace(0, len(names) - 1, 12).round()]
-    pick = list(dict.fromkeys(pick))[:16]
+    pick = order[:PREVIEW_LEAST_SURE] + [int(i) for i in np.linspace(0, len(names) - 1, PREVIEW_SPREAD).round()]
+    pick = list(dict.fromkeys(pick))[:PREVIEW_TILES]
     labels = [names[i] + (f"  sure {sure[i]:.2f}" if sure[i] is not None else "") for i in pick]
     sheet = contact_sheet([ws.images_dir / names[i] for i in pick], [ws.masks_dir / names[i] for i in pick],
                           labels=labels, excluded=[names[i] in excluded for i in pick], max_tiles=len(pick))

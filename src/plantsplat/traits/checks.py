@@ -41,6 +41,11 @@ from plantsplat.train.data import load_scene
 
 log = get_logger(__name__)
 
+SOIL_DISC_SHARE = 0.8
+"""Where the rim stands for an unseen soil, the soil's disc is this share of the rim's radius (inside the pot wall)."""
+MIN_SFM_POINTS = 50
+"""The pot is looked for among the SfM points only when the model has at least this many."""
+
 
 @dataclass(frozen=True)
 class QualityThresholds:
@@ -106,7 +111,7 @@ def _soil_of(soil_z: float, rim_z: float, centre, rim_radius, source: str) -> tu
     for an unseen soil."""
     if soil_z < rim_z:
         return float(soil_z), source, None
-    disc = (np.asarray(centre, float), 0.8 * float(rim_radius))
+    disc = (np.asarray(centre, float), SOIL_DISC_SHARE * float(rim_radius))
     return float(soil_z), source + " (soil not seen: at most the rim)", disc
 
 
@@ -116,7 +121,7 @@ def _pot_from_sfm(ws):
         scene = load_scene(ws, need_masks=False, load_images=False)
     except PlantsplatError:
         return None
-    if len(scene.points) < 50:
+    if len(scene.points) < MIN_SFM_POINTS:
         return None
     axis = orbit_axis([np.linalg.inv(v.viewmat) for v in scene.views])
     return find_pot(scene.points, axis[:2])

@@ -18,6 +18,9 @@ from scipy.spatial import cKDTree
 
 from plantsplat.traits.config import TraitsConfig
 
+FULL_TURN_DEG = 360.0
+"""Degrees in a full turn of the hue circle (red at 0 and at the full turn)."""
+
 
 def fruit_mask(colors: np.ndarray, s: TraitsConfig) -> np.ndarray:
     """[N] bool: points whose colour matches the fruit colour model (see the module docstring).
@@ -27,8 +30,8 @@ def fruit_mask(colors: np.ndarray, s: TraitsConfig) -> np.ndarray:
         [True, False, False]
     """
     hsv = rgb_to_hsv(np.asarray(colors, dtype=np.float64).reshape(-1, 3) / 255.0)  # [N, 3] in 0..1
-    hue_deg = hsv[:, 0] * 360.0
-    red = np.minimum(hue_deg, 360.0 - hue_deg) <= s.fruit_hue_deg
+    hue_deg = hsv[:, 0] * FULL_TURN_DEG
+    red = np.minimum(hue_deg, FULL_TURN_DEG - hue_deg) <= s.fruit_hue_deg
     return red & (hsv[:, 1] >= s.fruit_min_saturation) & (hsv[:, 2] >= s.fruit_min_value)
 
 
@@ -65,15 +68,17 @@ def fruit_sized(points: np.ndarray, max_cm: float) -> bool:
     return bool(ext[1] <= max_cm and ext[0] <= 2.0 * max_cm)
 
 
-def count_fruit(points_cm: np.ndarray, colors: np.ndarray, s: TraitsConfig) -> tuple[int, np.ndarray]:
-    """Count fruit among the plant's points: ``(count, centres [F, 3])``."""
+def count_fruit(points_cm: np.ndarray, colors: np.ndarray, s: TraitsConfig, core_points: int = 5
+                ) -> tuple[int, np.ndarray]:
+    """Count fruit among the plant's points: ``(count, centres [F, 3])``. The fruit-coloured points are grouped by
+    DBSCAN (radius ``s.fruit_eps_cm``, ``core_points`` neighbours make a core point)."""
     m = fruit_mask(colors, s)
     if m.sum() < s.fruit_min_points:
         return 0, np.zeros((0, 3))
     fp = points_cm[m]
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(fp))
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        lab = np.asarray(pc.cluster_dbscan(eps=s.fruit_eps_cm, min_points=5), dtype=np.int64)
+        lab = np.asarray(pc.cluster_dbscan(eps=s.fruit_eps_cm, min_points=core_points), dtype=np.int64)
     centres = []
     for i in range(lab.max() + 1):
         q = fp[lab == i]
