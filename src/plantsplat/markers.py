@@ -36,12 +36,12 @@ log = get_logger(__name__)
 
 MARKERS_VERSION = 1
 APRILTAG_OFFSET_PX = 0.5
-"""Where OpenCV's AprilTag corner refinement puts pixel centres (see :func:`detect_markers`)."""
+"""Where OpenCV's AprilTag corner refinement puts pixel centres (see :func:`markers_in_image`)."""
 MIN_SHIFT_SAMPLES = 3
 """Detections with junctions needed before the capture's edge shift is taken off (fewer: no correction)."""
 
 
-def detect_markers(image: np.ndarray, cube: CubeSpec = CubeSpec()) -> dict[int, np.ndarray]:
+def markers_in_image(image: np.ndarray, cube: CubeSpec = CubeSpec()) -> dict[int, np.ndarray]:
     """The cube's markers in an RGB or gray uint8 image: ``{marker_id: corners [4, 2]}`` (pixels, ArUco order).
 
     Pixel centres are at integer coordinates (OpenCV's convention). OpenCV's AprilTag refinement
@@ -198,7 +198,7 @@ def detect_frames(image_dir: Path, names: list[str], cube: CubeSpec = CubeSpec()
     shifts: list[float] = []
     for name in progress(names, "detecting the cube's markers"):
         gray = read_image(Path(image_dir) / name, mode="gray")
-        det = detect_markers(gray, cube)
+        det = markers_in_image(gray, cube)
         if not det:
             continue
         raw[name] = det

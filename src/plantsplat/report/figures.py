@@ -1,7 +1,7 @@
 """Figures for the plant report: frame contact sheet with mask overlays, camera path, render pairs.
 
 Usage:
-    sheet, shown, with_mask = contact_sheet(Workspace("ws/plant_01"), max_frames=24)
+    sheet, shown, with_mask = frames_contact_sheet(Workspace("ws/plant_01"), max_frames=24)
     sheet.shape[2], shown
 """
 
@@ -28,7 +28,7 @@ def pick_evenly(items: list, k: int) -> list:
     return [items[i] for i in idx]
 
 
-def contact_sheet(ws: Workspace, max_frames: int = 24, tile_height: int = 320, columns: int = 6
+def frames_contact_sheet(ws: Workspace, max_frames: int = 24, tile_height: int = 320, columns: int = 6
                   ) -> tuple[np.ndarray, int, int]:
     """Grid of evenly spread frames, with the mask overlaid where ``masks/`` has the frame
     (:func:`plantsplat.segment.preview.contact_sheet`).

@@ -104,7 +104,7 @@ def generic_tables(d: Mapping[str, Any], title: str | None = None, depth: int = 
         elif depth < 3:
             out.append(generic_tables(v, title=str(k), depth=depth + 1))
     for k, v in records.items():  # e.g. per-view metrics as a list of dicts: one row each
-        flat = [flatten(x) for x in v]
+        flat = [flatten_for_table(x) for x in v]
         cols: list[str] = []
         for x in flat:
             cols += [c for c in x if c not in cols]
@@ -112,11 +112,11 @@ def generic_tables(d: Mapping[str, Any], title: str | None = None, depth: int = 
     return "".join(out)
 
 
-def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+def flatten_for_table(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     """Nested mappings flattened to one level with ``"outer inner"`` keys.
 
     Example:
-        >>> flatten({"name": "a", "composite": {"psnr": 30.0}})
+        >>> flatten_for_table({"name": "a", "composite": {"psnr": 30.0}})
         {'name': 'a', 'composite psnr': 30.0}
     """
     return flatten_keys(d, " ", prefix)

@@ -31,7 +31,7 @@ from plantsplat.report import html as H
 from plantsplat.report.config import ReportConfig
 from plantsplat.report.figures import (
     camera_path_png,
-    contact_sheet,
+    frames_contact_sheet,
     pick_evenly,
     read_cameras,
     render_pairs,
@@ -221,7 +221,7 @@ def _frames_section(ws: Workspace, parts: _Parts, opts: ReportConfig) -> str:
     names = ws.image_names()
     body = []
     if names:
-        sheet, shown, masked = contact_sheet(ws, opts.max_frames)
+        sheet, shown, masked = frames_contact_sheet(ws, opts.max_frames)
         n_masks = len(list(ws.masks_dir.glob("*.png"))) if ws.masks_dir.is_dir() else 0
         body.append(f'<p class="muted">{shown} of {len(names)} frames; {n_masks} masks in masks/. '
                     "Background darkened, mask outline in green.</p>")

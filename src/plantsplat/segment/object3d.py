@@ -227,12 +227,13 @@ def find_pot(points: np.ndarray, axis_xy: np.ndarray, slab: float = POT_SLAB_CM,
             if z < z_rim and np.linalg.norm(c - centre) < wall_offset_cm and r <= r_rim + 1.0]
     heights = np.array([0.0] + [z for z, _ in wall] + [z_rim])
     radii = np.array([wall[0][1] if wall else r_rim] + [r for _, r in wall] + [r_rim])
-    return Pot(centre=np.asarray(centre), rim_z=float(z_rim), soil_z=soil_level(near, centre, r_rim, z_rim, slab),
+    return Pot(centre=np.asarray(centre), rim_z=float(z_rim), soil_z=soil_top_in_pot(near, centre, r_rim, z_rim, slab),
                heights=heights, radii=np.maximum.accumulate(radii))
 
 
-def soil_level(points: np.ndarray, centre: np.ndarray, r_rim: float, z_rim: float, slab: float,
-               depth: float = 6.0, cover: float = 0.5, inner: float = 0.8, rings: int = 8, sectors: int = 16) -> float:
+def soil_top_in_pot(points: np.ndarray, centre: np.ndarray, r_rim: float, z_rim: float, slab: float,
+                    depth: float = 6.0, cover: float = 0.5, inner: float = 0.8, rings: int = 8, sectors: int = 16
+                    ) -> float:
     """The top of the soil in a pot: the highest slab below the rim whose Gaussians cover at least ``cover`` of the
     disc inside the rim (``inner`` of its radius, in ``rings`` rings of equal area x ``sectors`` directions); the
     rim when none does. The crown and the petioles' feet above the soil are near the axis and do not cover the

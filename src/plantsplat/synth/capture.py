@@ -110,7 +110,7 @@ def _remove_stale_frames(out: Path, n: int) -> None:
                 p.unlink()
 
 
-def generate(cfg: SynthConfig) -> dict:
+def write_capture(cfg: SynthConfig) -> dict:
     """Write a complete capture into ``cfg.out`` and return paths, timings and the ground-truth traits."""
     validate(cfg)
     t_all = time.perf_counter()
@@ -177,7 +177,7 @@ def generate(cfg: SynthConfig) -> dict:
     timings["gl_setup_s"] = time.perf_counter() - t
     log.info("rendering %d frames at %dx%d (%s)", cfg.frames, cfg.width, cfg.height, renderer.ctx.info["GL_RENDERER"])
     axis_pt = np.array([[0.0, 0.0, pot.soil_z]])
-    axis_uv = np.stack([gt.project(K, c, axis_pt)[0] for c in c2ws])  # [n, 2]
+    axis_uv = np.stack([gt.project_to_pixels(K, c, axis_pt)[0] for c in c2ws])  # [n, 2]
     fg = np.zeros(256, bool)
     fg[list(FOREGROUND_CLASSES)] = True
     frames_json = []

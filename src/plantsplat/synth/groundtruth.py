@@ -129,7 +129,7 @@ def markers_visible(ids: np.ndarray, c2w: np.ndarray, K: np.ndarray, markers: di
     return out
 
 
-def project(K: np.ndarray, c2w: np.ndarray, X: np.ndarray) -> np.ndarray:
+def project_to_pixels(K: np.ndarray, c2w: np.ndarray, X: np.ndarray) -> np.ndarray:
     """Pixel coordinates ``[N, 2]`` (OpenCV convention) of world points ``X [N, 3]``."""
     w2c = np.linalg.inv(c2w)
     Xc = X @ w2c[:3, :3].T + w2c[:3, 3]

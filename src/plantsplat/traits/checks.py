@@ -84,7 +84,7 @@ class QualityThresholds:
     nothing but that point."""
 
 
-def soil_level(ws, calibrated: bool) -> tuple[float | None, str, tuple | None]:
+def workspace_soil(ws, calibrated: bool) -> tuple[float | None, str, tuple | None]:
     """The soil surface's height (cm, cube frame), where it comes from, and the pot's inner disc
     ``(centre xy, radius)`` when the soil was not seen and the rim stands for it (then the plant's lowest
     point inside the pot bounds it: nothing of the plant grows below the soil); ``(None, why, None)``
@@ -107,7 +107,7 @@ def soil_level(ws, calibrated: bool) -> tuple[float | None, str, tuple | None]:
 
 
 def _soil_of(soil_z: float, rim_z: float, centre, rim_radius, source: str) -> tuple[float, str, tuple | None]:
-    """:func:`soil_level`'s answer for a pot: the soil, its source, and the pot's inner disc when the rim stood
+    """:func:`workspace_soil`'s answer for a pot: the soil, its source, and the pot's inner disc when the rim stood
     for an unseen soil."""
     if soil_z < rim_z:
         return float(soil_z), source, None

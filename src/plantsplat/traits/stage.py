@@ -29,7 +29,7 @@ from plantsplat.log import get_logger
 from plantsplat.markers import recorded_cube
 from plantsplat.ply import is_splat, read_point_cloud, read_splat_extent_cloud
 from plantsplat.segment.object3d import POT_SLAB_CM
-from plantsplat.traits.checks import result_checks, soil_level, stage_checks
+from plantsplat.traits.checks import result_checks, stage_checks, workspace_soil
 from plantsplat.traits.config import ROBUST_KEYS, TraitsConfig, cube_edge_cm
 from plantsplat.traits.figures import traits_figure
 from plantsplat.traits.height import height_bounds, soil_interval
@@ -87,7 +87,7 @@ def run(ws, cfg=None, *, points_path: str | Path | None = None, calibrated: bool
 
     Reads ``WS/export/points.ply`` (or ``points_path``) and ``WS/poses.json`` (``scale_source``
     'aruco' means calibrated), writes ``traits.json``, ``traits.csv`` and ``traits.png``. The height is
-    measured from the soil (:func:`plantsplat.traits.checks.soil_level`). ``quality`` is ``failed`` when
+    measured from the soil (:func:`plantsplat.traits.checks.workspace_soil`). ``quality`` is ``failed`` when
     nothing could be measured or a check of a stage or of the measurement fails (the files are written
     all the same; the commands then exit with :data:`plantsplat.errors.EXIT_RESULT_FAILED`).
 
@@ -129,7 +129,7 @@ def run(ws, cfg=None, *, points_path: str | Path | None = None, calibrated: bool
         data = read_point_cloud(ply, "run `plantsplat export` first or pass --points")
     log.info("traits: %s (%d points, %s)", ply, len(data["xyz"]), "calibrated cm" if calibrated else "unscaled")
     cams = camera_centres(ws)
-    soil_z, soil_source, soil_disc = soil_level(ws, calibrated)
+    soil_z, soil_source, soil_disc = workspace_soil(ws, calibrated)
     cube = recorded_cube(ws.markers_json)  # the cube the poses stage measured with
     res = measure_traits(data["xyz"], data["rgb"], calibrated=calibrated, opacity=data["opacity"],
                          scales=data["scales"], camera_centres=None if calibrated else cams, settings=s,
