@@ -184,21 +184,31 @@ def _imported(module: str, path: Path, node: ast.Import | ast.ImportFrom, mods: 
     return [f"{base}.{a.name}" if f"{base}.{a.name}" in mods else base for a in node.names]
 
 
-def _loading_heavy(mods: dict[str, Path]) -> set[str]:
-    """The plantsplat modules whose import loads a heavy library (through their module-level imports)."""
-    loads: dict[str, set[str]] = {}
+def _loaded_at_import(mods: dict[str, Path]) -> dict[str, set[str]]:
+    """``{module: every module its import loads}``: its module-level imports, theirs, and so on (plantsplat modules
+    and the other libraries by their full names)."""
+    direct: dict[str, set[str]] = {}
     for m, path in mods.items():
         tree = ast.parse(path.read_text())
         deferred = {id(n) for n in _function_imports(tree)}
         names = {t for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom)) and id(n) not in deferred
                  for t in _imported(m, path, n, mods)}
-        loads[m] = {".".join(t.split(".")[:i]) for t in names for i in range(1, t.count(".") + 2)}
-    heavy = {m for m, names in loads.items() if any(t.split(".")[0] in HEAVY_LIBRARIES for t in names)}
-    while True:
-        more = {m for m, names in loads.items() if m not in heavy and names & heavy}
-        if not more:
-            return heavy
-        heavy |= more
+        direct[m] = {".".join(t.split(".")[:i]) for t in names for i in range(1, t.count(".") + 2)}
+    loaded = {}
+    for m in mods:
+        seen, todo = set(), [m]
+        while todo:
+            for t in direct.get(todo.pop(), ()):
+                if t not in seen:
+                    seen.add(t)
+                    todo.append(t)
+        loaded[m] = seen
+    return loaded
+
+
+def _loading_heavy(mods: dict[str, Path]) -> set[str]:
+    """The plantsplat modules whose import loads a heavy library."""
+    return {m for m, names in _loaded_at_import(mods).items() if any(t.split(".")[0] in HEAVY_LIBRARIES for t in names)}
 
 
 def _says_deferred(lines: list[str], node: ast.stmt) -> bool:
@@ -251,6 +261,15 @@ def test_the_import_rules_find_what_they_forbid(tmp_path):
     assert [p.split(" ", 1)[0] for p in problems] == ["plantsplat.fake:6", "plantsplat.fake:7", "plantsplat.fake:8"]
     assert "import it at the top" in problems[0] and "without a '# deferred" in problems[1]
     assert "plantsplat.segment.stage" in _loading_heavy(mods) and "plantsplat.pipeline" not in _loading_heavy(mods)
+
+
+def test_only_the_poses_stage_loads_pycolmap_at_import():
+    """Importing pycolmap installs glog's handlers of fatal signals over the CLI's SIGTERM handler (a SIGTERM then
+    kills the process with a stack trace instead of taking the Ctrl-C path): the other stages' modules load it only in
+    the function that reads a COLMAP model (``plantsplat.train.data``)."""
+    loaded = _loaded_at_import(_modules())
+    stages = [f"plantsplat.{s}.stage" for s in STAGE_PACKAGES if s != "poses"]
+    assert {m for m in stages if "pycolmap" in loaded[m]} == set()
 
 
 # --- numbers in the stages' function bodies -------------------------------------------------------

@@ -19,7 +19,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pycolmap
 
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_image, read_json, write_json_atomic
@@ -69,6 +68,10 @@ class Scene:
 
 
 def _cameras_from_colmap(path: Path) -> tuple[dict[str, View], np.ndarray, np.ndarray]:
+    # deferred: importing pycolmap installs glog's handlers of fatal signals over the CLI's SIGTERM handler, so it
+    # loads only where a COLMAP model is read (the train, segment and traits stages end on SIGTERM like on Ctrl-C)
+    import pycolmap
+
     try:
         rec = pycolmap.Reconstruction(str(path))
     except Exception as exc:
