@@ -57,12 +57,12 @@ def machine_info() -> dict:
 def main(argv=None) -> int:
     os.environ.setdefault("PLANTSPLAT_NO_PROGRESS", "1")
     from plantsplat.io import write_json_atomic
-    from plantsplat.report import write_report
     from plantsplat.report.browser import (
         ReportBrowser,
         find_chromium,
         playwright_available,
     )
+    from plantsplat.report.plant import write_report
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the tests' synthetic workspaces
     from report_workspace import make_synthetic_workspace
 

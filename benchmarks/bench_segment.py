@@ -34,8 +34,9 @@ import numpy as np
 
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_image, read_json, write_json_atomic
-from plantsplat.segment import mask_iou, segment_workspace
+from plantsplat.segment import stage as segmentation
 from plantsplat.segment.config import SegmentConfig
+from plantsplat.segment.scores import mask_iou
 from plantsplat.workspace import Workspace
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -139,7 +140,7 @@ def foreign(cap: Path, ws: Workspace) -> dict:
         p = cap / "masks" / f"{f['source_index']:05d}.png"
         if p.is_file():
             truth[f["name"]] = read_image(p, "gray") > 127
-    segment_workspace(ws, SegmentConfig())
+    segmentation.run(ws, SegmentConfig())
     return {**score(ws, truth), **far_from_plant(ws, true_plant_points(cap))}
 
 
@@ -152,7 +153,7 @@ def synthetic(seed: int, cache: Path, ws: Workspace) -> dict:
     prepare(cap / "video.mp4", ws)
     truth = {f["name"]: read_image(cap / "masks" / f"frame_{f['source_index']:05d}.png", "gray") > 127
              for f in read_json(ws.frames_json)["frames"]}
-    segment_workspace(ws, SegmentConfig())
+    segmentation.run(ws, SegmentConfig())
     return {**score(ws, truth), **far_from_plant(ws, true_plant_points(cap))}
 
 
@@ -174,7 +175,7 @@ def romi_virtual(ws: Workspace) -> dict | None:
         truth[p.name] = read_image(src / "images" / p.name.replace("_rgb", "_background"), "gray") < 128
     poses_stage.run(ws, PosesConfig(import_colmap=src / "colmap_text" / "sparse" / "0"))
     try:
-        segment_workspace(ws, SegmentConfig())
+        segmentation.run(ws, SegmentConfig())
     except PlantsplatError as exc:  # recorded as the result: the benchmark goes on
         return {"error": str(exc)}
     return score(ws, truth)

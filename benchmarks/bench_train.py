@@ -155,8 +155,9 @@ def object_on_segmented_masks(ws: Workspace, iterations: int | None, max_res: in
     ground-truth masks (as the other rows). Also the segmenter's mask IoU against the truth over all frames."""
     import cv2
 
-    from plantsplat.segment import mask_iou, segment_workspace
+    from plantsplat.segment import stage as segmentation
     from plantsplat.segment.config import SegmentConfig
+    from plantsplat.segment.scores import mask_iou
     from plantsplat.train.config import TrainConfig
     from plantsplat.train.evaluate import evaluate_workspace
     from plantsplat.train.trainer import train_workspace
@@ -165,7 +166,7 @@ def object_on_segmented_masks(ws: Workspace, iterations: int | None, max_res: in
     shutil.copytree(ws.root, seg.root, ignore=lambda d, names: [n for n in names if n.startswith(("train_", "metrics_"))
                                                                   or n in ("masks", "rgba")])
     t0 = time.perf_counter()
-    segment_workspace(seg, SegmentConfig(preview=False))
+    segmentation.run(seg, SegmentConfig(preview=False))
     seg_seconds = time.perf_counter() - t0
     ious = []
     for name in ws.image_names():

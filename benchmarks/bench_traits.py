@@ -96,13 +96,9 @@ def main() -> int:
 
     from plantsplat.io import write_json_atomic
     from plantsplat.log import setup_logging
-    from plantsplat.traits import (
-        TraitsConfig,
-        accuracy_table,
-        format_table,
-        measure_traits,
-        scatter_plots,
-    )
+    from plantsplat.traits.config import TraitsConfig
+    from plantsplat.traits.measure import measure_traits
+    from plantsplat.traits.stats import accuracy_table, format_table, scatter_plots
 
     setup_logging(quiet=True)
     info = machine_info()

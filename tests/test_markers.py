@@ -10,10 +10,10 @@ cv2 = pytest.importorskip("cv2")
 from plantsplat.cube import CubeSpec  # noqa: E402
 from plantsplat.markers import (  # noqa: E402
     Markers,
-    detect_markers,
     edge_shift_px,
     junctions,
     marker_cells,
+    markers_in_image,
     read_markers,
     shift_corners,
     write_markers,
@@ -71,7 +71,7 @@ def test_edge_shift_is_measured_and_taken_back(erode):
     """Black print eroded by a known amount: the detected corners lie inward by about that much; the junctions
     measure it and the corrected corners are back where the marker is."""
     img = draw_marker(0, CORNERS, erode)
-    det = detect_markers(img)
+    det = markers_in_image(img)
     assert set(det) == {0}
     raw = det[0]
     shift = edge_shift_px(img, 0, raw)
@@ -84,7 +84,7 @@ def test_edge_shift_is_measured_and_taken_back(erode):
 
 def test_junctions_hidden_by_an_occluder_are_not_used():
     img = draw_marker(0, CORNERS, 0.8)
-    raw = detect_markers(img)[0]
+    raw = markers_in_image(img)[0]
     hidden = img.copy()
     hidden[180:300, 180:300] = 200  # a pale object over the marker's middle: no junction is seen there
     assert edge_shift_px(hidden, 0, raw) is None

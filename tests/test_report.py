@@ -17,8 +17,10 @@ from report_workspace import (
 
 from plantsplat.cli import main as cli_main
 from plantsplat.errors import PlantsplatError
-from plantsplat.report import ReportConfig, write_batch_report, write_report
+from plantsplat.report.batch import write_batch_report
+from plantsplat.report.config import ReportConfig
 from plantsplat.report.figures import read_cameras
+from plantsplat.report.plant import write_report
 from plantsplat.report.splat import (
     SPLAT_DTYPE,
     decode_splat,

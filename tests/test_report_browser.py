@@ -11,13 +11,14 @@ import numpy as np
 import pytest
 from report_workspace import make_synthetic_workspace
 
-from plantsplat.report import write_batch_report, write_report
+from plantsplat.report.batch import write_batch_report
 from plantsplat.report.browser import (
     ReportBrowser,
     find_chromium,
     open_report,
     playwright_available,
 )
+from plantsplat.report.plant import write_report
 
 pytestmark = [
     pytest.mark.skipif(find_chromium() is None,

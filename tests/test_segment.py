@@ -15,7 +15,7 @@ from plantsplat.cube import CubeSpec
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_image, read_json
 from plantsplat.pipeline import segment_stage
-from plantsplat.segment import mask_iou, segment_workspace
+from plantsplat.segment import stage as segmentation
 from plantsplat.segment.config import SegmentConfig
 from plantsplat.segment.frame import object_prior, refine
 from plantsplat.segment.object3d import (
@@ -24,6 +24,7 @@ from plantsplat.segment.object3d import (
     in_view_share,
     object_model,
 )
+from plantsplat.segment.scores import mask_iou
 from plantsplat.train.data import View
 from plantsplat.workspace import Workspace
 
@@ -210,7 +211,7 @@ def test_import_masks_by_name_source_name_and_alpha(tmp_path):
     rgba = np.zeros((48, 64, 4), np.uint8)
     rgba[..., 3] = m * 255
     cv2.imwrite(str(src / "IMG_7.png"), rgba)  # an RGBA frame under its original name: its alpha
-    info = segment_workspace(ws, SegmentConfig(import_masks=src))
+    info = segmentation.run(ws, SegmentConfig(import_masks=src))
     assert info["backend"] == "import" and info["excluded"] == []
     for name in ws.image_names():
         got = read_image(ws.masks_dir / name, "gray")
@@ -226,14 +227,14 @@ def test_import_masks_bad_input_is_one_line(tmp_path, capsys):
     src = tmp_path / "mine"
     src.mkdir()
     with pytest.raises(PlantsplatError, match="no mask images"):
-        segment_workspace(ws, SegmentConfig(import_masks=src))
+        segmentation.run(ws, SegmentConfig(import_masks=src))
     cv2.imwrite(str(src / "frame_00000.png"), np.zeros((48, 64), np.uint8))
     with pytest.raises(PlantsplatError, match="no mask for 2 of 3 frames"):
-        segment_workspace(ws, SegmentConfig(import_masks=src))
+        segmentation.run(ws, SegmentConfig(import_masks=src))
     for i in (1, 2):
         cv2.imwrite(str(src / f"frame_{i:05d}.png"), np.zeros((40, 64), np.uint8))
     with pytest.raises(PlantsplatError, match="masks must have their frame's size"):
-        segment_workspace(ws, SegmentConfig(import_masks=src))
+        segmentation.run(ws, SegmentConfig(import_masks=src))
     (tmp_path / "file").write_text("x")
     assert main(["segment", str(ws.root), "--import-masks", str(tmp_path / "file")]) == 1
     err = capsys.readouterr().err
@@ -245,10 +246,10 @@ def test_bad_workspaces(tmp_path, capsys):
     from plantsplat.cli import main
 
     with pytest.raises(PlantsplatError, match="plantsplat frames"):
-        segment_workspace(tmp_path / "nothing")
+        segmentation.run(tmp_path / "nothing")
     ws = _workspace(tmp_path)
     with pytest.raises(PlantsplatError, match="plantsplat poses"):
-        segment_workspace(ws)
+        segmentation.run(ws)
     assert main(["segment", str(tmp_path / "none")]) == 2
     err = capsys.readouterr().err
     assert "none: no such folder" in err and "Traceback" not in err
@@ -257,8 +258,6 @@ def test_bad_workspaces(tmp_path, capsys):
 def test_interrupted_segment_leaves_no_mix_and_runs_again(tmp_path, monkeypatch, interrupted_after):
     """`segment --force` interrupted half way keeps the previous masks whole, and the next run is not
     "up to date" (issue 34, case 5)."""
-    import plantsplat.segment as seg
-
     ws = _workspace(tmp_path, n=4)
     src = tmp_path / "mine"
     src.mkdir()
@@ -270,13 +269,13 @@ def test_interrupted_segment_leaves_no_mix_and_runs_again(tmp_path, monkeypatch,
     before = {n: read_image(ws.masks_dir / n, "gray") for n in ws.image_names()}
     for i in range(4):  # the user's masks change; the stage is forced and interrupted after two files
         cv2.imwrite(str(src / f"frame_{i:05d}.png"), np.full((48, 64), 255, np.uint8))
-    real = seg._write_png
-    monkeypatch.setattr(seg, "_write_png", interrupted_after(real, 3))
+    real = segmentation._write_png
+    monkeypatch.setattr(segmentation, "_write_png", interrupted_after(real, 3))
     with pytest.raises(KeyboardInterrupt):
         segment_stage(ws, SegmentConfig(import_masks=src, preview=False), force=True)
     for n, m in before.items():
         assert np.array_equal(read_image(ws.masks_dir / n, "gray"), m), n
-    monkeypatch.setattr(seg, "_write_png", real)
+    monkeypatch.setattr(segmentation, "_write_png", real)
     info = segment_stage(ws, SegmentConfig(import_masks=src, preview=False))
     assert not info.get("up_to_date")
     assert all(read_image(ws.masks_dir / n, "gray").min() == 255 for n in ws.image_names())

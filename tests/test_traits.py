@@ -10,11 +10,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from plantsplat import traitdefs
-from plantsplat.traits import accuracy_table, measure_traits
 from plantsplat.traits.config import TraitsConfig
 from plantsplat.traits.cube_fit import cube_surface_points, decide_up, fit_cube_planes
 from plantsplat.traits.fruit import fruit_mask
-from plantsplat.traits.stats import format_table, mae, mape, r2, rmse, scatter_plots
+from plantsplat.traits.measure import measure_traits
+from plantsplat.traits.stats import accuracy_table, format_table, mae, mape, r2, rmse, scatter_plots
 
 CUBE_FACES = ("+x", "-x", "+y", "-y", "top")  # the bottom face stands on the ground and is never seen
 

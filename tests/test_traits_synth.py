@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from plantsplat.ply import read_point_cloud as read_points_ply
-from plantsplat.traits import measure_traits
+from plantsplat.traits.measure import measure_traits
 
 GEOMETRIC = ("height_cm", "width1_cm", "width2_cm", "canopy_volume_cm3", "canopy_area_cm2")
 

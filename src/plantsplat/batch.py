@@ -277,7 +277,7 @@ def _fmt(v) -> str:
 
 
 def _accuracy(out: Path, plants: list[dict], gt_path: Path) -> dict:
-    from plantsplat.traits.stats import accuracy_table, scatter_plots  # deferred: the traits package loads OpenCV
+    from plantsplat.traits.stats import accuracy_table, scatter_plots  # deferred: it loads matplotlib
 
     truth, problems = read_ground_truth_csv(gt_path)
     for p in problems:
@@ -304,7 +304,7 @@ def _accuracy(out: Path, plants: list[dict], gt_path: Path) -> dict:
 
 def _maybe_batch_report(out: Path, plants: list[dict], accuracy: dict | None, truth: dict | None) -> None:
     try:
-        from plantsplat.report import write_batch_report  # deferred: only with a report
+        from plantsplat.report.batch import write_batch_report  # deferred: it loads OpenCV (only with a report)
     except ImportError:
         return
     reports = {p["plant_id"]: Path(p["workspace"]) / "report.html" for p in plants

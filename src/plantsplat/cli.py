@@ -10,9 +10,12 @@ import contextlib
 import importlib
 import io
 import pkgutil
+import signal
 import sys
+import threading
 from typing import Annotated
 
+import plantsplat.commands as command_modules
 from plantsplat import __version__
 from plantsplat.errors import PlantsplatError
 
@@ -29,11 +32,9 @@ DESCRIPTION = (
 
 
 def discover_commands():
-    import plantsplat.commands as pkg
-
     commands = []
-    for info in pkgutil.iter_modules(pkg.__path__):
-        module = importlib.import_module(f"{pkg.__name__}.{info.name}")
+    for info in pkgutil.iter_modules(command_modules.__path__):
+        module = importlib.import_module(f"{command_modules.__name__}.{info.name}")
         cmd = getattr(module, "COMMAND", None)
         if cmd is not None:
             commands.append(cmd)
@@ -72,14 +73,15 @@ def usage_line(text: str, argv: list[str]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    import tyro
-
-    from plantsplat.log import console, setup_logging
-
     argv = list(sys.argv[1:] if argv is None else argv)
     if "--version" in argv:
         print(f"plantsplat {__version__}")
         return 0
+    # deferred: `plantsplat --version` answers before tyro, rich and numpy load (about 0.2 s)
+    import tyro
+
+    from plantsplat.log import console, setup_logging
+
     verbose = "--verbose" in argv or "-v" in argv
     quiet = "--quiet" in argv or "-q" in argv
     argv = [a for a in argv if a not in ("--verbose", "-v", "--quiet", "-q")]
@@ -107,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
 
     cmd = by_type[type(cfg)]
     with sigterm_as_interrupt():
-        return _run_command(cmd, cfg, verbose)
+        return _run_command(cmd, cfg, verbose, console)
 
 
 class Terminated(KeyboardInterrupt):
@@ -118,9 +120,6 @@ class Terminated(KeyboardInterrupt):
 @contextlib.contextmanager
 def sigterm_as_interrupt():
     """Turn SIGTERM into :class:`Terminated` for the block (in the main thread; elsewhere nothing changes)."""
-    import signal
-    import threading
-
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -135,10 +134,9 @@ def sigterm_as_interrupt():
         signal.signal(signal.SIGTERM, previous)
 
 
-def _run_command(cmd, cfg, verbose: bool) -> int:
-    """Run the parsed command; every way it can end becomes an exit code and at most one line."""
-    from plantsplat.log import console
-
+def _run_command(cmd, cfg, verbose: bool, console) -> int:
+    """Run the parsed command; every way it can end becomes an exit code and at most one line (on ``console``, the
+    log's rich console)."""
     try:
         code = cmd.run(cfg)
     except PlantsplatError as exc:
@@ -147,9 +145,9 @@ def _run_command(cmd, cfg, verbose: bool) -> int:
         console.print(f"[bold red]error:[/] {exc}", markup=True, highlight=False, soft_wrap=True)
         return exc.exit_code
     except KeyboardInterrupt as exc:
-        return _interrupted(exc)
+        return _interrupted(exc, console)
     except OSError as exc:  # the disk or the file system, said in words
-        from plantsplat.io import os_error_message
+        from plantsplat.io import os_error_message  # deferred: it loads numpy (see main)
 
         if verbose:
             console.print_exception()
@@ -157,7 +155,7 @@ def _run_command(cmd, cfg, verbose: bool) -> int:
         return 1
     except Exception as exc:  # an unexpected failure: one line, traceback only with --verbose
         if interrupt_behind(exc) is not None:  # Ctrl-C or SIGTERM that landed inside a C library's callback
-            return _interrupted(interrupt_behind(exc))
+            return _interrupted(interrupt_behind(exc), console)
         if verbose:
             console.print_exception()
         console.print(
@@ -183,9 +181,7 @@ def interrupt_behind(exc: BaseException) -> KeyboardInterrupt | None:
     return None
 
 
-def _interrupted(exc: KeyboardInterrupt) -> int:
-    from plantsplat.log import console
-
+def _interrupted(exc: KeyboardInterrupt, console) -> int:
     what = "terminated (SIGTERM)" if isinstance(exc, Terminated) else "interrupted"
     console.print(f"{what}: finished outputs are kept; re-run the same command to resume", soft_wrap=True)
     return EXIT_TERMINATED if isinstance(exc, Terminated) else EXIT_INTERRUPTED

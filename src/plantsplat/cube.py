@@ -98,7 +98,7 @@ class CubeSpec:
         return [[1, 3, 7, 5], [0, 4, 6, 2], [2, 6, 7, 3], [0, 1, 5, 4], [4, 5, 7, 6], [0, 2, 3, 1]]
 
     def aruco_dictionary(self):
-        import cv2
+        import cv2  # deferred: OpenCV is slow to load, and the CLI imports this module (for CubeSpec)
 
         if not hasattr(cv2.aruco, self.dictionary):
             raise ValueError(f"unknown ArUco dictionary {self.dictionary!r}")
@@ -131,7 +131,7 @@ def cube_pose(
     pixels)`` or ``None`` when no marker was detected. ``T_cam_cube`` maps cube-frame points to
     OpenCV camera coordinates.
     """
-    import cv2
+    import cv2  # deferred: OpenCV is slow to load, and the CLI imports this module (for CubeSpec)
 
     if not detections:
         return None
@@ -182,6 +182,6 @@ def cube_pose(
 
 def marker_image(marker_id: int, pixels: int, cube: CubeSpec = CubeSpec()) -> np.ndarray:
     """The printed marker (black border included) as a ``pixels`` x ``pixels`` uint8 image."""
-    import cv2
+    import cv2  # deferred: OpenCV is slow to load, and the CLI imports this module (for CubeSpec)
 
     return cv2.aruco.generateImageMarker(cube.aruco_dictionary(), int(marker_id), int(pixels), borderBits=1)

@@ -20,6 +20,8 @@ import contextlib
 import errno
 import json
 import os
+import shutil
+import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -130,8 +132,6 @@ def replace_dir(new: str | os.PathLike, path: str | os.PathLike) -> None:
 
 def remove_tree(path: Path) -> None:
     """Remove a file or a folder with everything in it; nothing when it is not there."""
-    import shutil
-
     if path.is_dir():
         shutil.rmtree(path, ignore_errors=True)
     elif path.exists():
@@ -187,7 +187,7 @@ def png_params() -> list[int]:
     """OpenCV ``imwrite`` parameters for fast lossless PNGs: zlib level 1, run-length strategy and the one "sub"
     row filter instead of trying all five per row. A 540x960 RGBA frame: 27 ms against 72 ms with OpenCV's
     defaults, and 10 % smaller (measured here)."""
-    import cv2
+    import cv2  # deferred: OpenCV is slow to load, and the CLI imports this module
 
     params = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
     if hasattr(cv2, "IMWRITE_PNG_FILTER"):  # OpenCV >= 4.11
@@ -201,7 +201,7 @@ def write_image_atomic(path: str | os.PathLike, image: np.ndarray) -> None:
 
     Colour images are given in RGB(A) order; OpenCV's BGR order is handled here.
     """
-    import cv2
+    import cv2  # deferred: OpenCV is slow to load, and the CLI imports this module
 
     img = np.asarray(image)
     if img.ndim == 3 and img.shape[2] == 3:
@@ -219,8 +219,6 @@ def native_stderr_said(said: list[str]) -> Iterator[None]:
     """Catch what C libraries print on the process's stderr during the block (libjpeg's "Premature end of JPEG
     file", "Corrupt JPEG data: ...") into ``said``, one line each, instead of letting it reach the terminal raw;
     the caller says it in words, naming the file."""
-    import sys
-
     sys.stderr.flush()
     with tempfile.TemporaryFile(mode="w+b") as sink:
         saved = os.dup(2)
@@ -236,7 +234,7 @@ def native_stderr_said(said: list[str]) -> Iterator[None]:
 
 def imread_quietly(path: str | os.PathLike, flag: int) -> np.ndarray | None:
     """``cv2.imread`` whose decoder complaints (a truncated or damaged JPEG) become one warning naming the file."""
-    import cv2
+    import cv2  # deferred: OpenCV is slow to load, and the CLI imports this module
 
     said: list[str] = []
     with native_stderr_said(said):
@@ -249,7 +247,7 @@ def imread_quietly(path: str | os.PathLike, flag: int) -> np.ndarray | None:
 
 def read_image(path: str | os.PathLike, mode: str = "rgb") -> np.ndarray:
     """Read an image as uint8 RGB (``mode='rgb'``), RGBA (``'rgba'``) or single channel (``'gray'``)."""
-    import cv2
+    import cv2  # deferred: OpenCV is slow to load, and the CLI imports this module
 
     path = Path(path)
     flag = {"rgb": cv2.IMREAD_COLOR, "rgba": cv2.IMREAD_UNCHANGED, "gray": cv2.IMREAD_GRAYSCALE}[mode]

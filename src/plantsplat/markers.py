@@ -23,7 +23,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
+from scipy.optimize import least_squares
 
 from plantsplat.cube import CubeSpec
 from plantsplat.errors import PlantsplatError
@@ -34,12 +36,12 @@ log = get_logger(__name__)
 
 MARKERS_VERSION = 1
 APRILTAG_OFFSET_PX = 0.5
-"""Where OpenCV's AprilTag corner refinement puts pixel centres (see :func:`detect_markers`)."""
+"""Where OpenCV's AprilTag corner refinement puts pixel centres (see :func:`markers_in_image`)."""
 MIN_SHIFT_SAMPLES = 3
 """Detections with junctions needed before the capture's edge shift is taken off (fewer: no correction)."""
 
 
-def detect_markers(image: np.ndarray, cube: CubeSpec = CubeSpec()) -> dict[int, np.ndarray]:
+def markers_in_image(image: np.ndarray, cube: CubeSpec = CubeSpec()) -> dict[int, np.ndarray]:
     """The cube's markers in an RGB or gray uint8 image: ``{marker_id: corners [4, 2]}`` (pixels, ArUco order).
 
     Pixel centres are at integer coordinates (OpenCV's convention). OpenCV's AprilTag refinement
@@ -48,8 +50,6 @@ def detect_markers(image: np.ndarray, cube: CubeSpec = CubeSpec()) -> dict[int, 
     ``cornerSubPix`` refinement, and a fitted synthetic marker shows the same; that half pixel is taken
     off. Corners are otherwise as detected (see :func:`shift_corners` for the edge-shift correction).
     """
-    import cv2
-
     gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_APRILTAG
@@ -66,8 +66,6 @@ def detect_markers(image: np.ndarray, cube: CubeSpec = CubeSpec()) -> dict[int, 
 
 def marker_cells(marker_id: int, cube: CubeSpec = CubeSpec()) -> np.ndarray:
     """The printed marker as cells, border included: ``[n, n]`` bool, True = black, row 0 at the marker's top."""
-    import cv2
-
     n = cube.aruco_dictionary().markerSize + 2
     img = cv2.aruco.generateImageMarker(cube.aruco_dictionary(), int(marker_id), n, borderBits=1)
     return img < 128
@@ -133,8 +131,6 @@ def _refined_junctions(gray: np.ndarray, H: np.ndarray, pts: np.ndarray, dark: n
     dark and bright diagonals (occluded or washed-out junctions do not). Returns
     ``(plane points [J, 2], pixels [J, 2])``.
     """
-    import cv2
-
     guess = _apply(H, pts)
     win = max(2, int(round(cell_px / 4)))
     crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 0.01)
@@ -162,9 +158,6 @@ def edge_shift_px(gray: np.ndarray, marker_id: int, corners: np.ndarray, cube: C
     printed places, the corners moved inward by the shift along their bisectors (:func:`inward_bisectors`).
     ``gray``: the frame as float32 or uint8 ``[H, W]``.
     """
-    import cv2
-    from scipy.optimize import least_squares
-
     pts, dark = junctions(marker_id, cube)
     if not len(pts):
         return None
@@ -205,7 +198,7 @@ def detect_frames(image_dir: Path, names: list[str], cube: CubeSpec = CubeSpec()
     shifts: list[float] = []
     for name in progress(names, "detecting the cube's markers"):
         gray = read_image(Path(image_dir) / name, mode="gray")
-        det = detect_markers(gray, cube)
+        det = markers_in_image(gray, cube)
         if not det:
             continue
         raw[name] = det

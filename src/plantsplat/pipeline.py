@@ -26,6 +26,7 @@ from plantsplat import __version__
 from plantsplat.errors import PlantsplatError, UsageError
 from plantsplat.export.config import ExportConfig
 from plantsplat.frames.config import FramesConfig
+from plantsplat.groundtruth import compare_traits, load_ground_truth
 from plantsplat.io import read_json, write_json_atomic
 from plantsplat.lock import workspace_lock
 from plantsplat.log import get_logger
@@ -89,30 +90,27 @@ def poses_stage(ws: Workspace, cfg: PosesConfig, force: bool = False) -> dict:
 
 
 def segment_stage(ws: Workspace, cfg: SegmentConfig, force: bool = False) -> dict:
-    """Masks of the plant and the cube (:func:`plantsplat.segment.segment_workspace`)."""
-    from plantsplat.segment import outputs, segment_workspace
+    """Masks of the plant and the cube (:func:`plantsplat.segment.stage.run`); an interrupted run with the same
+    options and inputs resumes from the checkpoint of its quick scene model."""
+    from plantsplat.segment import stage as segmentation  # deferred: it loads torch and OpenCV
 
     check_options(cfg, "segment")
     check_masks_are_ours(ws)
     require_ok(ws, "poses")
-    inputs = [ws.images_dir, ws.poses_json, ws.sparse_dir, ws.transforms_json, ws.markers_json]
-    inputs += [cfg.import_masks] if cfg.import_masks is not None else []
-    return run_stage(ws, "segment", _without(cfg, "preview", "device"), inputs, outputs(ws),
-                     lambda resume: segment_workspace(ws, cfg, resume), force)
+    return run_stage(ws, "segment", _without(cfg, "preview", "device"), segmentation.inputs(ws, cfg),
+                     segmentation.outputs(ws), lambda resume: segmentation.run(ws, cfg, resume), force)
 
 
 def train_stage(ws: Workspace, cfg: TrainConfig, force: bool = False) -> dict:
-    """The object-centric (or full-scene) Gaussian model (:func:`plantsplat.train.train_workspace`); an
+    """The object-centric (or full-scene) Gaussian model (:func:`plantsplat.train.stage.run`); an
     interrupted run with the same options and inputs resumes from its checkpoint."""
-    from plantsplat.train import train_workspace
-    from plantsplat.train.checkpoint import train_outputs
+    from plantsplat.train import stage as training  # deferred: it loads torch
 
     check_options(cfg, "train")
     require_ok(ws, "poses")
     require_ok(ws, "segment")
-    inputs = [ws.images_dir, ws.masks_dir, ws.segment_json, ws.sparse_dir, ws.transforms_json]
-    return run_stage(ws, "train", _without(cfg, "threads", "checkpoint_seconds"), inputs, train_outputs(ws, cfg),
-                     lambda resume: train_workspace(ws, cfg, resume=resume), force)
+    return run_stage(ws, "train", _without(cfg, "threads", "checkpoint_seconds"), training.inputs(ws, cfg),
+                     training.outputs(ws, cfg), lambda resume: training.run(ws, cfg, resume=resume), force)
 
 
 def export_stage(ws: Workspace, cfg: ExportConfig, force: bool = False) -> dict:
@@ -129,7 +127,7 @@ def traits_stage(ws: Workspace, cfg: TraitsConfig, force: bool = False, points: 
                  calibrated: bool | None = None, figure: bool = True) -> dict:
     """Traits and the checks that decide their quality (:func:`plantsplat.traits.stage.run`);
     ``points``: measure this PLY instead of the workspace's export."""
-    from plantsplat.traits import stage
+    from plantsplat.traits import stage  # deferred: it loads SciPy, Open3D, torch and matplotlib
 
     check_options(cfg, "traits")
     if points is None:
@@ -151,7 +149,7 @@ def evaluate_stage(ws: Workspace, ground_truth: Path, plant_id: str | None, forc
 
 def report_stage(ws: Workspace) -> dict:
     """``report.html`` (always written again: it shows every stage as it is now)."""
-    from plantsplat.report import write_report
+    from plantsplat.report.plant import write_report  # deferred: it loads OpenCV and matplotlib
 
     return {"report": str(write_report(ws))}
 
@@ -170,8 +168,6 @@ def evaluation_json(ws: Workspace) -> Path:
 
 def evaluate_traits(ws: Workspace, ground_truth: Path | None, plant_id: str | None = None) -> dict:
     """Compare ``WS/traits.json`` with ground truth; writes ``WS/evaluation.json``."""
-    from plantsplat.groundtruth import compare_traits, load_ground_truth
-
     if ground_truth is None or not str(ground_truth).strip():
         raise UsageError("evaluate needs --ground-truth (a synth ground_truth.json or a CSV of measured traits)")
     traits = read_json(ws.require(ws.traits_json, "traits"))

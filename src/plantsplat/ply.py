@@ -26,6 +26,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+from plyfile import PlyData, PlyElement
 from scipy.spatial.transform import Rotation
 
 from plantsplat.errors import PlantsplatError
@@ -37,8 +38,6 @@ SPLAT_COLUMNS = {"x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_
 
 def write_vertices(path: str | os.PathLike, columns: dict[str, np.ndarray]) -> None:
     """Write columns of equal length (each keeps its dtype) as a binary PLY's vertex element, atomically."""
-    from plyfile import PlyData, PlyElement
-
     n = len(next(iter(columns.values()))) if columns else 0
     arrays = {k: np.asarray(v) for k, v in columns.items()}
     rec = np.empty(n, dtype=[(k, a.dtype.str) for k, a in arrays.items()])
@@ -51,8 +50,6 @@ def write_vertices(path: str | os.PathLike, columns: dict[str, np.ndarray]) -> N
 def read_vertices(path: str | os.PathLike, hint: str = "re-run the stage that wrote it") -> np.ndarray:
     """The vertex element of a PLY as a structured array; a missing or unreadable file is a one-line error
     that ends with ``hint``."""
-    from plyfile import PlyData
-
     path = Path(path)
     if not path.is_file():
         raise PlantsplatError(f"{path}: not found; {hint}")

@@ -9,12 +9,15 @@ Example:
 
 from __future__ import annotations
 
+import importlib
 import os
 import platform
 import resource
 import threading
 import time
 from pathlib import Path
+
+import plantsplat
 
 
 def _read_status(key: str) -> float | None:
@@ -105,19 +108,15 @@ def machine_info() -> dict:
     except OSError:
         pass
     versions = {}
-    import importlib
-
     for mod in ["plantsplat", "numpy", "torch", "numba", "cv2", "pycolmap", "open3d"]:
         try:
             versions[mod] = getattr(importlib.import_module(mod), "__version__", "?")
         except Exception:
             versions[mod] = None
     info["versions"] = versions
-    import plantsplat
-
     info["omp"] = plantsplat.omp_setting()
     try:
-        import torch
+        import torch  # deferred: torch is slow to load, and the CLI imports this module
 
         info["cuda"] = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
     except Exception:

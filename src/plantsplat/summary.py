@@ -5,6 +5,9 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+from rich.table import Table
+
+from plantsplat.log import console
 from plantsplat.traitdefs import TRAIT_KEYS, TRAIT_LABELS, TRAIT_UNITS
 
 
@@ -18,10 +21,6 @@ def _num(v, key: str = "") -> str:
 
 def print_summary(summary: dict, comparison: dict | None = None) -> None:
     """Print traits (with ground truth and errors when given), image metrics, stage times and outputs."""
-    from rich.table import Table
-
-    from plantsplat.log import console
-
     traits = summary.get("traits") or {}
     if traits.get("quality") == "failed":  # first, before any number: these must not be used
         console.print("[bold red]RESULT FAILED its checks: do not use these traits.[/] "

@@ -88,14 +88,14 @@ def pca_widths(points: np.ndarray, trim: float = 0.0) -> tuple[float, float]:
 
 def canopy_volume(points: np.ndarray) -> float:
     """Canopy volume: volume of the 3D convex hull of the plant points (cm^3)."""
-    from scipy.spatial import ConvexHull
+    from scipy.spatial import ConvexHull  # deferred: SciPy is slow to load, and the CLI imports this module
 
     return float(ConvexHull(_check(points)).volume)
 
 
 def canopy_area(points: np.ndarray) -> float:
     """Projected canopy area: area of the 2D convex hull of the ground-projected points (cm^2)."""
-    from scipy.spatial import ConvexHull
+    from scipy.spatial import ConvexHull  # deferred: SciPy is slow to load, and the CLI imports this module
 
     return float(ConvexHull(_check(points)[:, :2]).volume)  # in 2D, .volume is the area
 

@@ -7,9 +7,12 @@ from pathlib import Path
 from typing import Annotated
 
 import tyro
+from rich.table import Table
 
-from plantsplat.batch import BatchConfig
+from plantsplat.batch import BatchConfig, run_batch
 from plantsplat.commands import Command
+from plantsplat.errors import EXIT_RESULT_FAILED
+from plantsplat.log import console
 
 
 @dataclass
@@ -31,10 +34,6 @@ class BatchCommand:
 
 
 def run(cfg: BatchCommand) -> int:
-    from plantsplat.batch import run_batch
-    from plantsplat.errors import EXIT_RESULT_FAILED
-    from plantsplat.log import console
-
     summary = run_batch(cfg.manifest, cfg.out, cfg.batch)
     for p in summary["plants"]:
         status = p["status"]
@@ -43,8 +42,6 @@ def run(cfg: BatchCommand) -> int:
     console.print(f"{summary['n_ok']} of {len(summary['plants'])} plants succeeded; traits: {cfg.out / 'traits.csv'}")
     acc = summary.get("accuracy")
     if acc:
-        from rich.table import Table
-
         t = Table(title="Accuracy against ground truth")
         for col in ("trait", "n", "R2", "RMSE", "MAPE %", "MAE", "Acc %"):
             t.add_column(col, justify="right")

@@ -9,7 +9,12 @@ from typing import Annotated
 import tyro
 
 from plantsplat.commands import Command
-from plantsplat.pipeline import RunConfig
+from plantsplat.errors import EXIT_RESULT_FAILED, PlantsplatError
+from plantsplat.io import read_json
+from plantsplat.log import console, get_logger
+from plantsplat.pipeline import RunConfig, run_pipeline
+from plantsplat.summary import print_summary
+from plantsplat.synth import SynthConfig, generate
 
 DEMO_SEED = 2025
 """Seed of the built-in sample capture."""
@@ -37,13 +42,6 @@ class DemoCommand:
 
 
 def run(cfg: DemoCommand) -> int:
-    from plantsplat.errors import EXIT_RESULT_FAILED
-    from plantsplat.io import read_json
-    from plantsplat.log import console, get_logger
-    from plantsplat.pipeline import run_pipeline
-    from plantsplat.summary import print_summary
-    from plantsplat.synth import SynthConfig, generate
-
     log = get_logger("demo")
     capture = cfg.out / "capture"
     gt_path = capture / "ground_truth.json"
@@ -59,8 +57,6 @@ def run(cfg: DemoCommand) -> int:
         log.info("capture %s already rendered, reused", capture)
     else:
         if capture.exists() and any(capture.iterdir()):
-            from plantsplat.errors import PlantsplatError
-
             raise PlantsplatError(
                 f"{capture}: holds a different capture; choose another --out or delete that folder", exit_code=2
             )

@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+import importlib
+import json
+import platform
 from dataclasses import dataclass
 
+from rich.table import Table
+
 from plantsplat.commands import Command
+from plantsplat.log import console
 
 
 @dataclass
@@ -24,51 +30,45 @@ def _check(name: str, fn):
 
 def collect() -> list[tuple[str, bool, str]]:
     """Return ``(component, ok, detail)`` rows describing this machine."""
-    import importlib
-    import platform
-
-    def version(mod: str):
-        return lambda: getattr(importlib.import_module(mod), "__version__", "installed")
-
     rows = [("python", True, platform.python_version())]
     for mod in ["numpy", "torch", "numba", "cv2", "av", "pycolmap", "open3d", "moderngl", "tyro"]:
-        rows.append(_check(mod, version(mod)))
-
-    def gl():
-        import moderngl
-
-        ctx = moderngl.create_standalone_context(backend="egl")
-        info = ctx.info["GL_RENDERER"]
-        ctx.release()
-        return info
-
-    rows.append(_check("opengl (egl)", gl))
-
-    def cuda():
-        import torch
-
-        if not torch.cuda.is_available():
-            raise RuntimeError("no CUDA device; the CPU backend will be used")
-        return torch.cuda.get_device_name(0)
-
-    rows.append(_check("cuda", cuda))
-    rows.append(_check("gsplat (optional)", version("gsplat")))
-    rows.append(_check("sam2 (optional)", version("sam2")))
-    rows.append(_check("ray (optional)", version("ray")))
+        rows.append(_check(mod, _version(mod)))
+    rows.append(_check("opengl (egl)", _opengl_renderer))
+    rows.append(_check("cuda", _cuda_device))
+    rows.append(_check("gsplat (optional)", _version("gsplat")))
+    rows.append(_check("sam2 (optional)", _version("sam2")))
+    rows.append(_check("ray (optional)", _version("ray")))
     return rows
+
+
+def _version(mod: str):
+    return lambda: getattr(importlib.import_module(mod), "__version__", "installed")
+
+
+def _opengl_renderer() -> str:
+    """The renderer of a headless (EGL) OpenGL context."""
+    import moderngl  # deferred: a check, which reports a missing or broken moderngl as such
+
+    ctx = moderngl.create_standalone_context(backend="egl")
+    info = ctx.info["GL_RENDERER"]
+    ctx.release()
+    return info
+
+
+def _cuda_device() -> str:
+    """The name of the first CUDA device."""
+    import torch  # deferred: torch is slow to load, and the CLI imports this module
+
+    if not torch.cuda.is_available():
+        raise RuntimeError("no CUDA device; the CPU backend will be used")
+    return torch.cuda.get_device_name(0)
 
 
 def run(cfg: DoctorCommand) -> int:
     rows = collect()
     if cfg.json:
-        import json
-
         print(json.dumps([{"component": n, "ok": ok, "detail": d} for n, ok, d in rows], indent=2))
         return 0
-    from rich.table import Table
-
-    from plantsplat.log import console
-
     table = Table(title="plantsplat doctor")
     table.add_column("component")
     table.add_column("status")

@@ -8,6 +8,9 @@ from pathlib import Path
 import tyro
 
 from plantsplat.commands import Command
+from plantsplat.pipeline import evaluate_stage, summarize_workspace
+from plantsplat.summary import print_summary
+from plantsplat.workspace import Workspace
 
 
 @dataclass
@@ -26,10 +29,6 @@ class EvaluateCommand:
 
 
 def run(cfg: EvaluateCommand) -> int:
-    from plantsplat.pipeline import evaluate_stage, summarize_workspace
-    from plantsplat.summary import print_summary
-    from plantsplat.workspace import Workspace
-
     ws = Workspace(cfg.ws, must_exist=True)
     plant_id = cfg.plant_id
     if plant_id is None and cfg.ground_truth.suffix.lower() == ".csv":

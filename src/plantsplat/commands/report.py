@@ -9,6 +9,8 @@ from typing import Annotated
 import tyro
 
 from plantsplat.commands import Command
+from plantsplat.errors import UsageError
+from plantsplat.log import get_logger
 from plantsplat.report.config import ReportConfig
 
 
@@ -26,9 +28,7 @@ class ReportCommand:
 
 
 def run(cfg: ReportCommand) -> int:
-    from plantsplat.errors import UsageError
-    from plantsplat.log import get_logger
-    from plantsplat.report import write_report
+    from plantsplat.report.plant import write_report  # deferred: it loads OpenCV and matplotlib
 
     for name in ("max_gaussians", "max_points", "max_frames", "max_render_pairs"):
         if getattr(cfg.options, name) < 1:

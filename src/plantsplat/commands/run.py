@@ -9,7 +9,9 @@ from typing import Annotated
 import tyro
 
 from plantsplat.commands import Command
-from plantsplat.pipeline import RunConfig
+from plantsplat.errors import EXIT_RESULT_FAILED
+from plantsplat.pipeline import RunConfig, run_pipeline
+from plantsplat.summary import print_summary
 
 
 @dataclass
@@ -36,10 +38,6 @@ class RunCommand:
 
 
 def run(cfg: RunCommand) -> int:
-    from plantsplat.errors import EXIT_RESULT_FAILED
-    from plantsplat.pipeline import run_pipeline
-    from plantsplat.summary import print_summary
-
     cfg.options.ground_truth = cfg.ground_truth
     cfg.options.plant_id = cfg.plant_id
     summary = run_pipeline(cfg.input, cfg.out, cfg.options, cfg.force)

@@ -9,7 +9,9 @@ from typing import Annotated
 import tyro
 
 from plantsplat.commands import Command
+from plantsplat.pipeline import segment_stage
 from plantsplat.segment.config import SegmentConfig
+from plantsplat.workspace import Workspace
 
 
 @dataclass
@@ -29,9 +31,6 @@ class SegmentCommand:
 
 
 def run(cmd: SegmentCommand) -> int:
-    from plantsplat.pipeline import segment_stage
-    from plantsplat.workspace import Workspace
-
     segment_stage(Workspace(cmd.workspace, must_exist=True), cmd.options, cmd.force)
     return 0
 

@@ -3,12 +3,10 @@
 from __future__ import annotations
 
 from plantsplat.commands import Command
-from plantsplat.synth import SynthConfig
+from plantsplat.synth import SynthConfig, generate
 
 
 def run(cfg: SynthConfig) -> int:
-    from plantsplat.synth import generate
-
     info = generate(cfg)
     t = info["traits"]
     print(f"{info['out']}: {info['frames']} frames in {info['timings']['total_s']:.1f} s; ground truth: height "

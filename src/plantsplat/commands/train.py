@@ -9,7 +9,9 @@ from typing import Annotated
 import tyro
 
 from plantsplat.commands import Command
+from plantsplat.pipeline import train_stage
 from plantsplat.train.config import TrainConfig
+from plantsplat.workspace import Workspace
 
 
 @dataclass
@@ -29,9 +31,6 @@ class TrainCommand:
 
 
 def run(cfg: TrainCommand) -> int:
-    from plantsplat.pipeline import train_stage
-    from plantsplat.workspace import Workspace
-
     train_stage(Workspace(cfg.workspace, must_exist=True), cfg.train, cfg.force)
     return 0
 

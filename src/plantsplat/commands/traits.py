@@ -9,8 +9,13 @@ from typing import Annotated
 import tyro
 
 from plantsplat.commands import Command
+from plantsplat.errors import EXIT_RESULT_FAILED
+from plantsplat.io import read_json
+from plantsplat.log import console
+from plantsplat.pipeline import traits_stage
 from plantsplat.traitdefs import TRAIT_KEYS
 from plantsplat.traits.config import TraitsConfig
+from plantsplat.workspace import Workspace
 
 
 @dataclass
@@ -37,12 +42,6 @@ class TraitsCommand:
 
 
 def run(cfg: TraitsCommand) -> int:
-    from plantsplat.errors import EXIT_RESULT_FAILED
-    from plantsplat.io import read_json
-    from plantsplat.log import console
-    from plantsplat.pipeline import traits_stage
-    from plantsplat.workspace import Workspace
-
     ws = Workspace(cfg.workspace, must_exist=True)
     traits_stage(ws, cfg.settings, cfg.force, points=cfg.points, calibrated=cfg.calibrated, figure=cfg.figure)
     out = read_json(ws.traits_json)

@@ -27,6 +27,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import pycolmap
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
@@ -60,8 +61,6 @@ class Calibration:
         return M
 
     def to_pycolmap(self):
-        import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
-
         return pycolmap.Sim3d(self.scale, pycolmap.Rotation3d(self.R), self.t.reshape(3, 1))
 
     def summary(self) -> dict:
@@ -113,8 +112,6 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.nda
 def _triangulate_corners(obs, cams, cube: CubeSpec):
     """Each marker corner seen in >= 2 frames triangulated in the model. Returns ``(model_pts, cube_pts)``
     ``[P, 3]`` pairs (None when fewer than four)."""
-    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
-
     tri_opts = pycolmap.EstimateTriangulationOptions()
     tri_opts.residual_type = pycolmap.TriangulationResidualType.REPROJECTION_ERROR
     tri_opts.ransac.max_error = 4.0
@@ -145,8 +142,6 @@ def _triangulate_corners(obs, cams, cube: CubeSpec):
 def _robust_similarity(model_pts: np.ndarray, cube_pts: np.ndarray, cube: CubeSpec):
     """Similarity model -> cube by RANSAC (threshold in centimetres, the cube's units), refitted on its
     inliers. Returns ``(s, R, t, geometric_ok)``: ok when the triangulated corners do form the cube."""
-    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
-
     ransac = pycolmap.RANSACOptions()
     ransac.max_error = 0.05 * cube.size
     ransac.random_seed = 0
@@ -320,8 +315,6 @@ def refine_with_cube(rec, detections: dict, cal: Calibration, cube: CubeSpec = C
     are used too (for a model warped as a whole, whose residuals exceed the detections' own error).
     Returns the number of control points added (0: nothing done).
     """
-    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
-
     rejected = {(n, m) for n, m, r in cal.detections_rejected if within_px is None or r > within_px}
     by_name = {im.name: im for im in rec.images.values() if im.has_pose}
     tracks: dict[tuple[int, int], list] = {}

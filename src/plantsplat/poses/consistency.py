@@ -29,6 +29,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pycolmap
 
 MIN_PAIR_INLIERS = 15
 """Pairs with fewer verified inliers than this are not judged (COLMAP's mapper ignores them too)."""
@@ -56,8 +57,6 @@ def sampson_px(xa: np.ndarray, xb: np.ndarray, R: np.ndarray, t: np.ndarray, foc
 def pair_errors(rec, db: Path) -> dict[tuple[str, str], tuple[int, float]]:
     """Every verified pair of ``db`` whose frames are both registered in ``rec``:
     ``{(name_a, name_b): (inliers, median Sampson distance in pixels under the model)}``."""
-    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
-
     poses = {im.name: (np.asarray(im.cam_from_world().matrix()), rec.cameras[im.camera_id])
              for im in rec.images.values() if im.has_pose}
     out = {}
@@ -99,8 +98,6 @@ def contradiction(errors: dict[tuple[str, str], tuple[int, float]], max_px: floa
 
 def remove_pairs(db: Path, pairs: list[tuple[str, str]]) -> int:
     """Delete the two-view geometries (and so the verified matches) of ``pairs`` from ``db``; returns how many."""
-    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
-
     n = 0
     with pycolmap.Database.open(str(db)) as d:
         ids = {im.name: im.image_id for im in d.read_all_images()}

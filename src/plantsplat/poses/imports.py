@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pycolmap
 
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_json
@@ -38,8 +39,6 @@ def name_map(ws: Workspace, model_names: list[str], names: list[str]) -> dict[st
 
 def rename_images(rec, mapping: dict[str, str]):
     """A copy of ``rec`` keeping only the posed images in ``mapping``, renamed to workspace names (no points)."""
-    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
-
     cam_ids = {im.camera_id for im in rec.images.values() if im.has_pose and im.name in mapping}
     if len(cam_ids) != 1:
         raise PlantsplatError(

@@ -18,6 +18,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pycolmap
 
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_json, staged_dir, write_json_atomic
@@ -86,8 +87,6 @@ def read_colmap(path: Path):
 
     ``path`` may be the model folder itself (``sparse/0``) or a parent holding ``0/`` or ``sparse/0``.
     """
-    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
-
     path = Path(path)
     if not path.exists():
         raise PlantsplatError(f"{path}: COLMAP model not found; pass the folder holding cameras/images/points3D")
@@ -165,8 +164,6 @@ def read_transforms(path: Path, image_names: list[str] | None = None):
     Frames are matched to ``image_names`` (the workspace images) by file name; with ``image_names``
     None every frame is kept. Per-frame intrinsics are not supported (one shared camera).
     """
-    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
-
     path = Path(path)
     data = read_json(path)
     if not isinstance(data, dict) or not isinstance(data.get("frames"), list) or not data["frames"]:

@@ -17,6 +17,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pycolmap
 
 MIN_INLIERS = 30
 """A localisation with fewer 2D-3D inliers than this is not trusted (COLMAP's mapper asks as many)."""
@@ -45,8 +46,6 @@ def _correspondences(d, rec, image_id: int, registered: dict[int, object]) -> tu
 def localize_frames(rec, db: Path, names: list[str], min_inliers: int = MIN_INLIERS) -> dict:
     """Camera poses (``cam_from_world``, pycolmap.Rigid3d) of the frames ``names`` localised against ``rec``'s
     points; frames that cannot be localised surely are absent."""
-    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
-
     cam = rec.cameras[next(iter(rec.cameras))]
     registered = {im.image_id: im for im in rec.images.values() if im.has_pose}
     opts = pycolmap.AbsolutePoseEstimationOptions()
@@ -72,8 +71,6 @@ def localize_frames(rec, db: Path, names: list[str], min_inliers: int = MIN_INLI
 def add_frames(rec, db: Path, poses: dict) -> list[str]:
     """Register the localised ``poses`` (name -> cam_from_world) in ``rec`` (frames without observations: their
     cameras only); returns the names added."""
-    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
-
     by_name = {im.name: im for im in rec.images.values()}
     cam_id = next(iter(rec.cameras))
     added = []

@@ -19,6 +19,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pycolmap
 
 from plantsplat.log import get_logger
 from plantsplat.poses.sfm import colmap_logging
@@ -36,8 +37,6 @@ def video_pairs(names: list[str], window: int) -> list[tuple[str, str]]:
 
 def build_vocabulary(db: Path, out: Path, words: int, seed: int = 0) -> Path:
     """Learn a visual vocabulary of ``words`` words from a sample of the capture's descriptors; written to ``out``."""
-    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
-
     rng = np.random.default_rng(seed)
     pycolmap.set_random_seed(seed)  # k-means draws from COLMAP's generator: the same vocabulary on every run
     with pycolmap.Database.open(str(db)) as d:
@@ -60,8 +59,6 @@ def build_vocabulary(db: Path, out: Path, words: int, seed: int = 0) -> Path:
 
 def retrieval_pairs(db: Path, vocabulary: Path, neighbours: int, query: list[str] | None = None) -> list[tuple[str, str]]:
     """Each frame (or each frame named in ``query``) with the ``neighbours`` frames most alike in visual words."""
-    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
-
     opts = pycolmap.VocabTreePairingOptions()
     opts.vocab_tree_path = str(vocabulary)
     opts.num_images = neighbours + 1  # the frame itself comes first

@@ -34,6 +34,8 @@ import torch
 from torch import Tensor
 
 from ..errors import PlantsplatError
+from .projection import project_gaussians, spherical_harmonics
+from .reference import composite_reference
 
 __all__ = ["RenderResult", "RasterInputError", "rasterize", "resolve_backend", "BACKENDS"]
 
@@ -77,7 +79,7 @@ def _gsplat_available() -> bool:
     if not torch.cuda.is_available():
         return False
     try:
-        import gsplat  # noqa: F401
+        import gsplat  # noqa: F401  (deferred: gsplat is optional, CUDA only)
     except Exception:  # gsplat missing or broken install
         return False
     return True
@@ -233,12 +235,10 @@ def rasterize(
                                f"got {trailing_background!r}")
     backend = resolve_backend(backend)
     if backend == "gsplat":
-        from .gsplat_backend import rasterize_gsplat
+        from .gsplat_backend import rasterize_gsplat  # deferred: gsplat is optional (CUDA only)
 
         return rasterize_gsplat(means, quats, scales, opacities, colors, viewmat, K, width, height,
                                 sh_degree, near, far, eps2d, tile_size)
-
-    from .projection import project_gaussians, spherical_harmonics
 
     if means.device.type != "cpu":
         raise RasterInputError(f"rasterize: backend {backend!r} needs CPU tensors, got {means.device}")
@@ -246,7 +246,7 @@ def rasterize(
     if backend == "reference":
         project = project_gaussians
     else:
-        from .cpu_projection import project_cpu as project
+        from .cpu_projection import project_cpu as project  # deferred: numba, which only the cpu backend needs
     means2d, conics, depths, radii2 = project(
         means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d
     )  # [N, 2], [N, 3], [N], [N, 2]
@@ -255,7 +255,7 @@ def rasterize(
         if backend == "reference":
             rgb = torch.clamp_min(spherical_harmonics(sh_degree, means - campos, colors) + 0.5, 0.0)  # [N, 3]
         else:  # the same colours and gradients from numba kernels (tested against the line above)
-            from .sh_cpu import sh_colors_cpu
+            from .sh_cpu import sh_colors_cpu  # deferred: numba, which only the cpu backend needs
 
             rgb = sh_colors_cpu(sh_degree, means, campos.detach(), colors)  # [N, 3]
     else:
@@ -264,13 +264,11 @@ def rasterize(
         means2d.retain_grad()
 
     if backend == "reference":
-        from .reference import composite_reference
-
         color, alpha, depth_sum = composite_reference(
             means2d, conics, rgb, opacities, depths, radii2, width, height, tile_size
         )
     else:
-        from .cpu import composite_cpu
+        from .cpu import composite_cpu  # deferred: numba, which only the cpu backend needs
 
         color, alpha, depth_sum = composite_cpu(
             means2d, conics, rgb, opacities, depths, radii2, width, height, tile_size,

@@ -49,6 +49,8 @@ from torch import Tensor
 
 import plantsplat.raster.numba_config  # noqa: F401  (numba's threading layer)
 
+from . import RasterInputError
+
 
 @intrinsic
 def _prefetch(typingctx, arr, idx):  # pragma: no cover - numba
@@ -919,8 +921,6 @@ def composite_cpu(
         0.3894
     """
     if tile_size % _LANES or tile_size > _TS_MAX:
-        from . import RasterInputError
-
         raise RasterInputError(
             f"rasterize: the cpu backend needs tile_size to be a multiple of {_LANES} up to {_TS_MAX}, got {tile_size}"
         )

@@ -5,6 +5,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from . import RasterInputError, RenderResult
+
 
 def rasterize_gsplat(
     means: Tensor,  # [N, 3]
@@ -30,9 +32,7 @@ def rasterize_gsplat(
     Usage:
         out = rasterize_gsplat(means.cuda(), quats.cuda(), ...)
     """
-    from gsplat import rasterization
-
-    from . import RasterInputError, RenderResult
+    from gsplat import rasterization  # deferred: gsplat is optional (CUDA only)
 
     if means.device.type != "cuda":
         raise RasterInputError(f"rasterize: backend 'gsplat' needs CUDA tensors, got {means.device}")

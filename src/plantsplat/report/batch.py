@@ -71,7 +71,7 @@ def _accuracy_table(accuracy: Mapping[str, Any] | None) -> Mapping[str, Mapping[
 def _table_from_truth(rows: Sequence[Mapping[str, Any]], truth: Mapping[str, Mapping[str, float]]):
     """The accuracy table computed here (plantsplat.traits.stats) when only per-plant truth was given."""
     try:
-        from plantsplat.traits.stats import accuracy_table
+        from plantsplat.traits.stats import accuracy_table  # deferred: matplotlib and SciPy; no table without them
     except ImportError:
         return None
     est = {_plant_id(r, i): {t: _number(r.get(t)) for t in TRAIT_KEYS} for i, r in enumerate(rows)}
@@ -83,7 +83,7 @@ def _table_from_truth(rows: Sequence[Mapping[str, Any]], truth: Mapping[str, Map
 def _scatter_html(rows: Sequence[Mapping[str, Any]], truth: Mapping[str, Mapping[str, Any]],
                   table: Mapping[str, Mapping[str, Any]] | None) -> tuple[str, int]:
     """One interactive plotly scatter (estimate vs hand measurement, 1:1 line) per trait with data."""
-    import plotly.graph_objects as go
+    import plotly.graph_objects as go  # deferred: plotly is slow to load, and only plots need it
 
     est = {_plant_id(r, i): r for i, r in enumerate(rows)}
     divs = []
@@ -189,7 +189,7 @@ def write_batch_report(
     head_extra = ""
     if truth_all:
         try:
-            import plotly.offline
+            import plotly.offline  # deferred: without plotly the report says how to get its plots
         except ImportError:
             plots_html = H.missing_note("interactive scatter plots", "install plotly: pip install plotly")
         else:

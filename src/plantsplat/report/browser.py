@@ -18,6 +18,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 CHROMIUM_ARGS = [
@@ -41,7 +42,7 @@ def find_chromium() -> str | None:
 
 def playwright_available() -> bool:
     try:
-        import playwright.sync_api  # noqa: F401
+        import playwright.sync_api  # noqa: F401  (deferred: Playwright is optional, a test dependency)
     except ImportError:
         return False
     return True
@@ -69,8 +70,6 @@ def _drawn_fraction(img: np.ndarray, background: tuple[int, int, int]) -> float:
 
 
 def _decode_png(data: bytes) -> np.ndarray:
-    import cv2
-
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
@@ -91,7 +90,7 @@ class ReportBrowser:
         self.browser = None
 
     def __enter__(self) -> "ReportBrowser":
-        from playwright.sync_api import sync_playwright
+        from playwright.sync_api import sync_playwright  # deferred: Playwright is optional, a test dependency
 
         exe = find_chromium()
         if exe is None:

@@ -1,7 +1,7 @@
 """Figures for the plant report: frame contact sheet with mask overlays, camera path, render pairs.
 
 Usage:
-    sheet, shown, with_mask = contact_sheet(Workspace("ws/plant_01"), max_frames=24)
+    sheet, shown, with_mask = frames_contact_sheet(Workspace("ws/plant_01"), max_frames=24)
     sheet.shape[2], shown
 """
 
@@ -11,9 +11,12 @@ import io
 import json
 from pathlib import Path
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
 
 from plantsplat.errors import PlantsplatError
+from plantsplat.segment.preview import contact_sheet as sheet_of
 from plantsplat.workspace import Workspace
 
 
@@ -25,15 +28,13 @@ def pick_evenly(items: list, k: int) -> list:
     return [items[i] for i in idx]
 
 
-def contact_sheet(ws: Workspace, max_frames: int = 24, tile_height: int = 320, columns: int = 6
+def frames_contact_sheet(ws: Workspace, max_frames: int = 24, tile_height: int = 320, columns: int = 6
                   ) -> tuple[np.ndarray, int, int]:
     """Grid of evenly spread frames, with the mask overlaid where ``masks/`` has the frame
     (:func:`plantsplat.segment.preview.contact_sheet`).
 
     Returns ``(sheet [H, W, 3] uint8, frames shown, frames with a mask)``.
     """
-    from plantsplat.segment.preview import contact_sheet as sheet_of
-
     names = ws.image_names()
     if not names:
         raise PlantsplatError(f"{ws.images_dir}: no frames")
@@ -67,11 +68,7 @@ def camera_path_png(c2w: np.ndarray, scene_points: np.ndarray | None = None) -> 
     ``c2w`` [N, 4, 4] camera-to-world in OpenGL axes (the camera looks along its -z), world z up, cm;
     ``scene_points`` [M, 3] (optional) are drawn as a grey cloud for reference.
     """
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     centres = c2w[:, :3, 3]  # [N, 3]
     look = -c2w[:, :3, 2]  # [N, 3] viewing directions
     span = float(np.ptp(centres, axis=0).max()) if len(centres) > 1 else 1.0

@@ -17,7 +17,10 @@ from collections.abc import Mapping, Sequence
 from importlib import resources
 from typing import Any
 
+import cv2
 import numpy as np
+
+from plantsplat.summary import flatten as flatten_keys
 
 
 def esc(text: Any) -> str:
@@ -101,7 +104,7 @@ def generic_tables(d: Mapping[str, Any], title: str | None = None, depth: int = 
         elif depth < 3:
             out.append(generic_tables(v, title=str(k), depth=depth + 1))
     for k, v in records.items():  # e.g. per-view metrics as a list of dicts: one row each
-        flat = [flatten(x) for x in v]
+        flat = [flatten_for_table(x) for x in v]
         cols: list[str] = []
         for x in flat:
             cols += [c for c in x if c not in cols]
@@ -109,15 +112,13 @@ def generic_tables(d: Mapping[str, Any], title: str | None = None, depth: int = 
     return "".join(out)
 
 
-def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+def flatten_for_table(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     """Nested mappings flattened to one level with ``"outer inner"`` keys.
 
     Example:
-        >>> flatten({"name": "a", "composite": {"psnr": 30.0}})
+        >>> flatten_for_table({"name": "a", "composite": {"psnr": 30.0}})
         {'name': 'a', 'composite psnr': 30.0}
     """
-    from plantsplat.summary import flatten as flatten_keys
-
     return flatten_keys(d, " ", prefix)
 
 
@@ -131,8 +132,6 @@ def img_tag(data: bytes, mime: str = "image/png", alt: str = "", cls: str = "", 
 
 def encode_image(rgb: np.ndarray, fmt: str = ".jpg", quality: int = 85) -> bytes:
     """Encode an RGB(A) uint8 image [H, W, C] as JPEG or PNG bytes."""
-    import cv2
-
     img = np.asarray(rgb)
     if img.ndim == 3 and img.shape[2] == 3:
         img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)

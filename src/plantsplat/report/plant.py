@@ -7,7 +7,7 @@ path; run times per stage. A part whose input is missing or unreadable is named 
 the command that produces it; it never stops the report.
 
 Usage:
-    from plantsplat.report import write_report
+    from plantsplat.report.plant import write_report
     write_report("ws/plant_01")
 """
 
@@ -20,8 +20,10 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
+from plantsplat import __version__ as version
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_image, read_json, write_text_atomic
 from plantsplat.log import get_logger, progress
@@ -29,7 +31,7 @@ from plantsplat.report import html as H
 from plantsplat.report.config import ReportConfig
 from plantsplat.report.figures import (
     camera_path_png,
-    contact_sheet,
+    frames_contact_sheet,
     pick_evenly,
     read_cameras,
     render_pairs,
@@ -180,8 +182,6 @@ def _viewer_section(ws: Workspace, parts: _Parts, opts: ReportConfig) -> str:
 
 
 def _renders_section(ws: Workspace, parts: _Parts, opts: ReportConfig) -> str:
-    import cv2
-
     rdir = ws.train_dir / "renders"
     pairs = render_pairs(rdir) if rdir.is_dir() else []
     if not pairs:
@@ -221,7 +221,7 @@ def _frames_section(ws: Workspace, parts: _Parts, opts: ReportConfig) -> str:
     names = ws.image_names()
     body = []
     if names:
-        sheet, shown, masked = contact_sheet(ws, opts.max_frames)
+        sheet, shown, masked = frames_contact_sheet(ws, opts.max_frames)
         n_masks = len(list(ws.masks_dir.glob("*.png"))) if ws.masks_dir.is_dir() else 0
         body.append(f'<p class="muted">{shown} of {len(names)} frames; {n_masks} masks in masks/. '
                     "Background darkened, mask outline in green.</p>")
@@ -310,8 +310,6 @@ def _runtimes_section(ws: Workspace, parts: _Parts) -> str:
 
 def build_report_html(ws: Workspace, opts: ReportConfig | None = None) -> tuple[str, _Parts]:
     """The report for ``ws`` as an HTML string, with the list of present and missing parts."""
-    from plantsplat import __version__ as version
-
     opts = opts or ReportConfig()
     parts = _Parts()
     steps = [

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from plantsplat.errors import PlantsplatError
+from plantsplat.ply import read_point_cloud, read_vertices
 
 SH_C0 = 0.28209479177387814
 """Degree-0 real spherical-harmonic constant: colour = 0.5 + SH_C0 * f_dc."""
@@ -63,8 +64,6 @@ def read_splat_ply(path: str | os.PathLike) -> SplatArrays:
         g = read_splat_ply("ws/export/splat.ply")
         g.means.shape
     """
-    from plantsplat.ply import read_vertices
-
     path = Path(path)
     v = read_vertices(path, "re-run `plantsplat export`")
     names = set(v.dtype.names or ())
@@ -142,8 +141,6 @@ def read_points_ply(path: str | os.PathLike, max_points: int | None = None, seed
         pc = read_points_ply("ws/export/points.ply", max_points=100_000)
         pc.positions.dtype, pc.colors.dtype
     """
-    from plantsplat.ply import read_point_cloud
-
     cloud = read_point_cloud(path, "re-run `plantsplat export`")
     pos = cloud["xyz"].astype(np.float32)  # [N, 3]
     col = cloud["rgb"] if cloud["rgb"] is not None else np.full((len(pos), 3), 200, np.uint8)

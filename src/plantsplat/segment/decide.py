@@ -33,6 +33,12 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components, maximum_flow
 from scipy.spatial import cKDTree
 
+HISTOGRAM_FLOOR = 1e-3
+"""Every bin of a colour histogram gets this share of the mean bin's weight, so that a colour one model has not seen
+keeps a small likelihood under it."""
+BODY_SIZE_PERCENTILE = 95
+"""The plant body's size: this percentile of its points' distances from their median (stray points aside)."""
+
 
 @dataclass
 class DecideConfig:
@@ -65,7 +71,7 @@ def colour_histogram(rgb: np.ndarray, weights: np.ndarray, bins: int) -> np.ndar
     idx = np.clip((rgb * bins).astype(int), 0, bins - 1)
     h = np.zeros((bins, bins, bins))
     np.add.at(h, (idx[:, 0], idx[:, 1], idx[:, 2]), weights)
-    h = gaussian_filter(h, 1.0, mode="constant") + 1e-3 * max(h.sum(), 1.0) / bins ** 3
+    h = gaussian_filter(h, 1.0, mode="constant") + HISTOGRAM_FLOOR * max(h.sum(), 1.0) / bins ** 3
     return h / h.sum()
 
 
@@ -133,7 +139,7 @@ def body_gaps(mu: np.ndarray, link: float) -> tuple[np.ndarray, float]:
     graph = csr_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(mu), len(mu)))
     _, label = connected_components(graph, directed=False)
     body = label == np.argmax(np.bincount(label))
-    size = float(np.percentile(np.linalg.norm(mu[body] - np.median(mu[body], axis=0), axis=1), 95))
+    size = float(np.percentile(np.linalg.norm(mu[body] - np.median(mu[body], axis=0), axis=1), BODY_SIZE_PERCENTILE))
     d = cKDTree(mu[body]).query(mu)[0]
     gap = np.zeros(len(mu))
     for piece in np.unique(label[~body]):

@@ -15,16 +15,22 @@ Usage:
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import torch
 
 from plantsplat.segment.object3d import ObjectModel, camera_points, render_values
 
+SUBPIXEL_BITS = 4
+"""The cube's silhouette is filled with its corners in fixed point with this many fractional bits (OpenCV's shift)."""
+NEAR_REACH = 1.2
+"""Gaussians nearer a camera than the object's axis less this many times its reach are floaters of the quick model."""
+GRABCUT_MODEL_SIZE = 65
+"""Length of GrabCut's colour model arrays (OpenCV's fixed size: 5 Gaussians of 13 numbers)."""
+
 
 def cube_depth(cube, view) -> tuple[np.ndarray, np.ndarray]:
     """The calibrated cube in a view: ``(silhouette [H, W] bool, depth of its nearest face [H, W], inf outside)``."""
-    import cv2
-
     h = cube.size / 2
     corners = np.array([[x, y, z] for x in (-h, h) for y in (-h, h) for z in (0.0, cube.size)])
     uv, z = camera_points(corners, view)
@@ -33,7 +39,7 @@ def cube_depth(cube, view) -> tuple[np.ndarray, np.ndarray]:
     if (z <= 1e-6).any():
         return sil.astype(bool), depth
     hull = cv2.convexHull((uv - 0.5).astype(np.float32)).reshape(-1, 2)  # OpenCV draws pixel centres at integers
-    cv2.fillConvexPoly(sil, np.round(hull * 16).astype(np.int32), 1, shift=4)
+    cv2.fillConvexPoly(sil, np.round(hull * (1 << SUBPIXEL_BITS)).astype(np.int32), 1, shift=SUBPIXEL_BITS)
     ys, xs = np.nonzero(sil)
     # ray / box intersection (slab method) in the cube frame for the silhouette's pixels
     R, t = view.viewmat[:3, :3], view.viewmat[:3, 3]
@@ -60,7 +66,7 @@ def object_prior(obj: ObjectModel, view) -> tuple[np.ndarray, np.ndarray]:
     # nothing stands between the camera and the object (the filmer walks there): Gaussians nearer than the object's
     # region are floaters of the quick model, which can hang in front of one camera and veil the whole frame
     axis_depth = float(view.viewmat[2, :3] @ obj.axis + view.viewmat[2, 3])
-    keep_np = camera_points(mu, view)[1] > axis_depth - 1.2 * obj.info["reach"]
+    keep_np = camera_points(mu, view)[1] > axis_depth - NEAR_REACH * obj.info["reach"]
     cube = np.zeros((view.height, view.width), np.float32)
     if obj.cube is not None:  # Gaussians of the cube give way to the exact cube
         h = obj.cube.size / 2
@@ -84,8 +90,6 @@ def object_prior(obj: ObjectModel, view) -> tuple[np.ndarray, np.ndarray]:
 def distortion_map(view) -> tuple[np.ndarray, np.ndarray] | None:
     """Where each pixel of the (distorted) frame lies in the view's pinhole image: the two ``cv2.remap`` maps that
     bring a rendered prior onto the frame. None for a camera without distortion."""
-    import cv2
-
     if view.dist.size == 0 or not np.any(np.abs(view.dist) > 0):
         return None
     ys, xs = np.mgrid[0:view.height, 0:view.width].astype(np.float64)
@@ -96,8 +100,6 @@ def distortion_map(view) -> tuple[np.ndarray, np.ndarray] | None:
 
 def to_frame(prior: np.ndarray, maps: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
     """A prior rendered through the pinhole camera, moved onto the distorted frame (see :func:`distortion_map`)."""
-    import cv2
-
     if maps is None:
         return prior
     return cv2.remap(prior, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
@@ -108,8 +110,6 @@ def refine(rgb: np.ndarray, prior: np.ndarray, band_px: int = 6, iterations: int
     """The mask ``[H, W]`` bool: ``prior > 0.5`` with its outline moved onto the image's edges by GrabCut within
     ``band_px`` of it (in the prior's bounding box grown by ``margin_px``, where all the work is). ``seed``: of
     GrabCut's k-means, so that a frame's mask does not depend on the frames refined before it on the same thread."""
-    import cv2
-
     fg = prior > 0.5
     if not fg.any():
         return fg
@@ -125,7 +125,7 @@ def refine(rgb: np.ndarray, prior: np.ndarray, band_px: int = 6, iterations: int
     m[crop > 0] = cv2.GC_PR_FGD
     m[shrunk] = cv2.GC_FGD
     if (m == cv2.GC_FGD).any() and (m == cv2.GC_BGD).any():
-        bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
+        bgd, fgd = np.zeros((1, GRABCUT_MODEL_SIZE)), np.zeros((1, GRABCUT_MODEL_SIZE))
         cv2.setRNGSeed(seed)  # GrabCut's k-means draws from this thread's generator: the same mask on any thread
         cv2.grabCut(np.ascontiguousarray(rgb[y0:y1, x0:x1, ::-1]), m, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
     out = np.zeros_like(fg)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from plantsplat.errors import PlantsplatError
@@ -21,6 +22,10 @@ from plantsplat.io import read_image, read_json
 from plantsplat.workspace import Workspace
 
 SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
+MASK_THRESHOLD = 127
+"""A mask of 0..255 holds the plant above this (0/1 masks: above 0)."""
+SHOWN_MISSING = 5
+"""The error for missing masks names this many frames."""
 
 
 def _candidates(ws: Workspace, names: list[str]) -> dict[str, list[str]]:
@@ -43,7 +48,8 @@ def import_masks(folder: Path, ws: Workspace, names: list[str]) -> dict[str, np.
     cands = _candidates(ws, names)
     missing = [n for n in names if not any(s in files for s in cands[n])]
     if missing:
-        shown = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
+        more = len(missing) - SHOWN_MISSING
+        shown = ", ".join(missing[:SHOWN_MISSING]) + (f" and {more} more" if more > 0 else "")
         raise PlantsplatError(f"{folder}: no mask for {len(missing)} of {len(names)} frames ({shown}); name each mask "
                               "like its frame (e.g. frame_00000.png)")
     out = {}
@@ -54,12 +60,10 @@ def import_masks(folder: Path, ws: Workspace, names: list[str]) -> dict[str, np.
         if m.shape != shape:
             raise PlantsplatError(f"{path}: {m.shape[1]}x{m.shape[0]}, but frame {n} is {shape[1]}x{shape[0]}; "
                                   "masks must have their frame's size")
-        out[n] = m > (0 if m.max() <= 1 else 127)
+        out[n] = m > (0 if m.max() <= 1 else MASK_THRESHOLD)
     return out
 
 
 def _has_alpha(path: Path) -> bool:
-    import cv2
-
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     return img is not None and img.ndim == 3 and img.shape[2] == 4

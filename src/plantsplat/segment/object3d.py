@@ -29,10 +29,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from plantsplat.cube import CubeSpec, in_cube_box
 from plantsplat.log import get_logger
+from plantsplat.poses.checks import orbit_centre
+from plantsplat.raster import rasterize
 from plantsplat.segment.decide import DecideConfig, decide_plant
+from plantsplat.train.model import sh_to_rgb
 
 log = get_logger(__name__)
 
@@ -51,8 +56,6 @@ class ObjectModel:
 
 def orbit_axis(c2ws: list[np.ndarray]) -> np.ndarray:
     """The point closest (least squares) to every camera's optical axis: what the cameras circle. ``[3]``"""
-    from plantsplat.poses.checks import orbit_centre
-
     c = orbit_centre(c2ws)
     if c is None:
         return np.mean([M[:3, 3] for M in c2ws], axis=0)
@@ -97,8 +100,6 @@ def _scaled_K(view, scale: float) -> torch.Tensor:
 def render_values(params: dict, values: torch.Tensor, view, scale: float = 1.0, keep: torch.Tensor | None = None):
     """Composite per-Gaussian ``values`` ``[N, 3]`` into a view (``scale`` times its size): ``(image [h, w, 3], alpha
     [h, w])`` as numpy. ``keep`` [N] bool draws only some Gaussians."""
-    from plantsplat.raster import rasterize
-
     mu, q, s, o = params["means"], params["quats"], params["scales"], params["opacities"]
     if keep is not None:
         mu, q, s, o, values = mu[keep], q[keep], s[keep], o[keep], values[keep]
@@ -226,12 +227,13 @@ def find_pot(points: np.ndarray, axis_xy: np.ndarray, slab: float = POT_SLAB_CM,
             if z < z_rim and np.linalg.norm(c - centre) < wall_offset_cm and r <= r_rim + 1.0]
     heights = np.array([0.0] + [z for z, _ in wall] + [z_rim])
     radii = np.array([wall[0][1] if wall else r_rim] + [r for _, r in wall] + [r_rim])
-    return Pot(centre=np.asarray(centre), rim_z=float(z_rim), soil_z=soil_level(near, centre, r_rim, z_rim, slab),
+    return Pot(centre=np.asarray(centre), rim_z=float(z_rim), soil_z=soil_top_in_pot(near, centre, r_rim, z_rim, slab),
                heights=heights, radii=np.maximum.accumulate(radii))
 
 
-def soil_level(points: np.ndarray, centre: np.ndarray, r_rim: float, z_rim: float, slab: float,
-               depth: float = 6.0, cover: float = 0.5, inner: float = 0.8, rings: int = 8, sectors: int = 16) -> float:
+def soil_top_in_pot(points: np.ndarray, centre: np.ndarray, r_rim: float, z_rim: float, slab: float,
+                    depth: float = 6.0, cover: float = 0.5, inner: float = 0.8, rings: int = 8, sectors: int = 16
+                    ) -> float:
     """The top of the soil in a pot: the highest slab below the rim whose Gaussians cover at least ``cover`` of the
     disc inside the rim (``inner`` of its radius, in ``rings`` rings of equal area x ``sectors`` directions); the
     rim when none does. The crown and the petioles' feet above the soil are near the axis and do not cover the
@@ -296,8 +298,6 @@ def pot_solid(grid: Grid, free: np.ndarray, seen: np.ndarray, axis_xy: np.ndarra
     """The thick solid standing around the axis (pot and soil): voxels no view sees through, opened by a ball of
     ``thickness`` (leaves, petioles and fruit are thinner and vanish), the pieces within ``near_axis`` of the
     axis, grown back by the ball and one voxel (their surface). ``[X, Y, Z]`` bool."""
-    from scipy import ndimage
-
     c = grid.centres().reshape(*grid.shape, 3)
     solid = (free == 0) & (seen >= min_seen) & (c[..., 2] > 0)
     if cube is not None:  # the cube is a solid too, known exactly: not the pot
@@ -317,8 +317,6 @@ def pot_solid(grid: Grid, free: np.ndarray, seen: np.ndarray, axis_xy: np.ndarra
 def _weigh_evidence(params: dict, mu: np.ndarray, candidate: np.ndarray, orbit_radius: float, cfg: DecideConfig):
     """The candidates' colours and neighbours weighed (:func:`decide_plant`) against every opaque Gaussian that is no
     candidate."""
-    from plantsplat.train.model import sh_to_rgb
-
     rgb = sh_to_rgb(params["sh0"][:, 0, :]).clamp(0, 1).numpy().astype(np.float64)
     opacity = torch.sigmoid(params["opacities"]).numpy().reshape(-1).astype(np.float64)
     opaque = opacity > cfg.sure_opacity
@@ -356,8 +354,6 @@ def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: n
     region = radial < reach * cam_radial
     info: dict = {"axis": np.round(centre, 3).tolist(), "reach": round(reach * cam_radial, 3)}
     if len(sfm_points):
-        from scipy.spatial import cKDTree
-
         region &= cKDTree(sfm_points).query(mu, distance_upper_bound=sfm_reach * cam_radial)[0] < np.inf
     if cube is not None:
         region &= mu[:, 2] > ground_cm

@@ -24,13 +24,24 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
+import torch
 
 from plantsplat.errors import PlantsplatError, UsageError
 from plantsplat.io import read_image
 from plantsplat.log import get_logger, make_progress
 
 log = get_logger(__name__)
+
+MIN_PROMPT_PIXELS = 20
+"""A mask smaller than this (pixels) gives no prompt."""
+FRAME_JPEG_QUALITY = 95
+"""JPEG quality of the frames written for SAM-2 (it reads a folder of JPEGs)."""
+ERROR_CHARS = 160
+"""SAM-2's own error is quoted up to this many characters."""
+PIECE_CONNECTIVITY = 8
+"""The pieces of a mask that prompts are placed in are 8-connected."""
 
 INSTALL_HINT = (
     "SAM2_BUILD_CUDA=0 pip install -c constraints.txt --no-deps --no-build-isolation sam2==1.1.0 "
@@ -83,8 +94,8 @@ def random_checkpoint(config: str, path: str | os.PathLike, seed: int = 0) -> Pa
     Usage:
         random_checkpoint("configs/sam2.1/sam2.1_hiera_t.yaml", "/tmp/sam2.1_hiera_tiny.pt")
     """
+    # deferred: SAM 2 and hydra, omegaconf (which come with it) are optional
     import sam2  # noqa: F401  (registers SAM-2's configs with hydra)
-    import torch
     from hydra import compose
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
@@ -98,14 +109,12 @@ def random_checkpoint(config: str, path: str | os.PathLike, seed: int = 0) -> Pa
 
 def _prompt(mask: np.ndarray, n_points: int = 3) -> tuple[np.ndarray, np.ndarray] | None:
     """Box ``[4]`` (x0, y0, x1, y1) and positive points ``[n, 2]`` (x, y) from a bool mask ``[H, W]``."""
-    import cv2
-
     ys, xs = np.nonzero(mask)
-    if len(xs) < 20:
+    if len(xs) < MIN_PROMPT_PIXELS:
         return None
     box = np.array([xs.min(), ys.min(), xs.max(), ys.max()], np.float32)
     # points: the most interior pixels of the largest pieces (distance-transform maxima)
-    n, lab, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=PIECE_CONNECTIVITY)
     order = 1 + np.argsort(-stats[1:, cv2.CC_STAT_AREA])
     pts = []
     for k in order[:n_points]:
@@ -130,9 +139,7 @@ def sam2_segment(
     make sense for tests of the plumbing). Returns per-frame bool masks ``[H, W]`` (plant or cube)
     and facts for ``segment.json``.
     """
-    import cv2
-    import torch
-    from sam2.build_sam import build_sam2_video_predictor
+    from sam2.build_sam import build_sam2_video_predictor  # deferred: SAM 2 is optional
 
     if device is None:
         device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -146,7 +153,7 @@ def sam2_segment(
         predictor = build_sam2_video_predictor(config, str(checkpoint), device=device, hydra_overrides_extra=extra)
     except Exception as exc:  # wrong config for the weights, corrupt file, ...
         raise PlantsplatError(f"{checkpoint}: SAM-2 could not load it with config {config} "
-                              f"({type(exc).__name__}: {str(exc).splitlines()[0][:160] if str(exc) else ''}); "
+                              f"({type(exc).__name__}: {str(exc).splitlines()[0][:ERROR_CHARS] if str(exc) else ''}); "
                               "check --sam2-config matches the checkpoint") from exc
     H = W = None
     with tempfile.TemporaryDirectory(prefix="plantsplat_sam2_") as tmp:
@@ -154,7 +161,7 @@ def sam2_segment(
             rgb = read_image(p)
             H, W = rgb.shape[:2]
             cv2.imwrite(os.path.join(tmp, f"{i:05d}.jpg"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
-                        [cv2.IMWRITE_JPEG_QUALITY, 95])
+                        [cv2.IMWRITE_JPEG_QUALITY, FRAME_JPEG_QUALITY])
         out = [np.zeros((H, W), bool) for _ in range(n)]
         prompts = 0
         with torch.inference_mode():

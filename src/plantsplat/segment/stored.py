@@ -16,11 +16,17 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 
+from plantsplat.cube import CubeSpec
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import atomic_path
 from plantsplat.segment.config import SegmentConfig
+from plantsplat.segment.frame import object_prior, refine
+from plantsplat.segment.object3d import ObjectModel
+from plantsplat.train.checkpoint import load_model
+from plantsplat.train.data import load_scene
 from plantsplat.workspace import Workspace
 
 OBJECT_FILE = ".plantsplat/segment/object.npz"
@@ -44,11 +50,6 @@ def save_object(ws: Workspace, obj) -> None:
 
 def load_object(ws: Workspace):
     """The 3D object the segment stage found (:func:`save_object`) with its quick model, and the cameras by name."""
-    from plantsplat.cube import CubeSpec
-    from plantsplat.segment.object3d import ObjectModel
-    from plantsplat.train.checkpoint import load_model
-    from plantsplat.train.data import load_scene
-
     path = ws.root / OBJECT_FILE
     if not path.is_file():
         raise PlantsplatError(f"{path}: missing; run `plantsplat segment {ws.root}` (the 3d backend) first")
@@ -65,10 +66,6 @@ def segment_images(ws: Workspace, images: dict[str, np.ndarray], band_px: int | 
     """Masks ``{name: [h, w] bool}`` of images taken through the workspace's pinhole cameras (such as renders of its
     test views, ``[h, w, 3]`` uint8 at any size), cut as the segment stage cuts the frames: the 3D object it
     found, drawn into each camera and refined on the image."""
-    import cv2
-
-    from plantsplat.segment.frame import object_prior, refine
-
     obj, views = load_object(ws)
     band = SegmentConfig().refine_band_px if band_px is None else band_px
     out = {}

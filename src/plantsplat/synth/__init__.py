@@ -17,13 +17,11 @@ from plantsplat.synth.config import FORMAT, SynthConfig
 
 
 def generate(cfg: SynthConfig) -> dict:
-    """Render the capture described by ``cfg``; returns ``{"paths": {...}, "timings": {...}, ...}``."""
-    from plantsplat.synth.capture import generate as _generate
+    """Render the capture described by ``cfg`` (:func:`plantsplat.synth.capture.write_capture`); returns
+    ``{"paths": {...}, "timings": {...}, ...}``."""
+    from plantsplat.synth.capture import write_capture  # deferred: it loads moderngl, OpenCV and PyAV
 
-    return _generate(cfg)
-
-
-__all__ = ["FORMAT", "SynthConfig", "generate"]
+    return write_capture(cfg)
 
 
 __all__ = ["FORMAT", "SynthConfig", "generate"]

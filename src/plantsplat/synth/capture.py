@@ -7,18 +7,29 @@ bit-identical PNGs, PLYs and JSON (rendering is deterministic on a given Mesa bu
 
 from __future__ import annotations
 
+import importlib
+import json
 import platform
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import cv2
 import numpy as np
 
+from plantsplat.cube import CubeSpec
 from plantsplat.errors import UsageError
 from plantsplat.io import write_image_atomic, write_json_atomic
 from plantsplat.log import get_logger, progress
+from plantsplat.synth import camera as cam
+from plantsplat.synth import groundtruth as gt
 from plantsplat.synth.config import FORMAT, SynthConfig
-from plantsplat.synth.mesh import CLASS_NAMES
+from plantsplat.synth.mesh import CLASS_NAMES, CUBE_CLASSES, FOREGROUND_CLASSES
+from plantsplat.synth.render import Renderer
+from plantsplat.synth.scene import make_scene
+from plantsplat.synth.sensor import SensorModel
+from plantsplat.synth.textures import make_layers
+from plantsplat.synth.video import encode_frames
 from plantsplat.traitdefs import TRAIT_KEYS
 from plantsplat.workspace import IMAGE_PATTERN, prepare_output_dir
 
@@ -57,8 +68,6 @@ def validate(cfg: SynthConfig) -> None:
 
 
 def _versions() -> dict:
-    import importlib
-
     out = {"python": platform.python_version()}
     for mod in ("numpy", "moderngl", "cv2", "av"):
         try:
@@ -70,8 +79,6 @@ def _versions() -> dict:
 
 def _preview_tile(rgb: np.ndarray, mask: np.ndarray, markers: list[int], ring: str, width: int = 240) -> np.ndarray:
     """A frame above the same frame with its mask outline, captioned with the ring and visible markers."""
-    import cv2
-
     h = int(round(rgb.shape[0] * width / rgb.shape[1]))
     small = cv2.resize(rgb, (width, h), interpolation=cv2.INTER_AREA)
     m = cv2.resize(mask, (width, h), interpolation=cv2.INTER_NEAREST)
@@ -90,8 +97,6 @@ def _remove_stale_frames(out: Path, n: int) -> None:
     Only folders of a previous ``plantsplat synth`` run (its ``ground_truth.json`` has our format) are
     touched, and only ``frame_NNNNN.png`` files with an index >= ``n``.
     """
-    import json
-
     try:
         old = json.loads((out / "ground_truth.json").read_text())
     except (OSError, ValueError):
@@ -105,18 +110,8 @@ def _remove_stale_frames(out: Path, n: int) -> None:
                 p.unlink()
 
 
-def generate(cfg: SynthConfig) -> dict:
+def write_capture(cfg: SynthConfig) -> dict:
     """Write a complete capture into ``cfg.out`` and return paths, timings and the ground-truth traits."""
-    from plantsplat.cube import CubeSpec
-    from plantsplat.synth import camera as cam
-    from plantsplat.synth import groundtruth as gt
-    from plantsplat.synth.mesh import CUBE_CLASSES, FOREGROUND_CLASSES
-    from plantsplat.synth.render import Renderer
-    from plantsplat.synth.scene import make_scene
-    from plantsplat.synth.sensor import SensorModel
-    from plantsplat.synth.textures import make_layers
-    from plantsplat.synth.video import encode_frames
-
     validate(cfg)
     t_all = time.perf_counter()
     timings: dict[str, float] = {}
@@ -182,7 +177,7 @@ def generate(cfg: SynthConfig) -> dict:
     timings["gl_setup_s"] = time.perf_counter() - t
     log.info("rendering %d frames at %dx%d (%s)", cfg.frames, cfg.width, cfg.height, renderer.ctx.info["GL_RENDERER"])
     axis_pt = np.array([[0.0, 0.0, pot.soil_z]])
-    axis_uv = np.stack([gt.project(K, c, axis_pt)[0] for c in c2ws])  # [n, 2]
+    axis_uv = np.stack([gt.project_to_pixels(K, c, axis_pt)[0] for c in c2ws])  # [n, 2]
     fg = np.zeros(256, bool)
     fg[list(FOREGROUND_CLASSES)] = True
     frames_json = []

@@ -18,9 +18,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 
+from plantsplat.cube import FACE_NAMES
+from plantsplat.ply import write_point_cloud
 from plantsplat.synth.mesh import CUBE_BASE, ORGAN_OF_CLASS, Mesh
+from plantsplat.traitdefs import geometric_traits
 
 CUBE_ORGAN = 10
 
@@ -71,8 +75,6 @@ def cube_samples(cube_meshes: list[Mesh], layers: np.ndarray, density: float, rn
 
 def write_ply(path: str | Path, s: dict[str, np.ndarray]) -> None:
     """Binary little-endian PLY with x, y, z (float32), red, green, blue, organ (uchar), instance (int32)."""
-    from plantsplat.ply import write_point_cloud
-
     write_point_cloud(path, s["xyz"], s["rgb"], organ=np.asarray(s["organ"], np.uint8),
                       instance=np.asarray(s["instance"], np.int32))
 
@@ -80,8 +82,6 @@ def write_ply(path: str | Path, s: dict[str, np.ndarray]) -> None:
 def traits(xyz: np.ndarray, n_fruits: int, soil_z: float) -> dict[str, float]:
     """Ground-truth traits with the shared definitions of :mod:`plantsplat.traitdefs`: height above the soil at
     ``soil_z`` (``n_fruits``: the ripe, red fruits, which is what ``fruit_count`` counts)."""
-    from plantsplat.traitdefs import geometric_traits
-
     t = geometric_traits(xyz, soil_z=soil_z)
     t["fruit_count"] = int(n_fruits)
     return t
@@ -97,10 +97,6 @@ def markers_visible(ids: np.ndarray, c2w: np.ndarray, K: np.ndarray, markers: di
     projected side is at least ``min_side_px`` and at least ``min_unoccluded`` of the pixels inside
     the square show that face in the id pass.
     """
-    import cv2
-
-    from plantsplat.cube import FACE_NAMES
-
     H, W = ids.shape
     w2c = np.linalg.inv(c2w)
     eye = c2w[:3, 3]
@@ -133,7 +129,7 @@ def markers_visible(ids: np.ndarray, c2w: np.ndarray, K: np.ndarray, markers: di
     return out
 
 
-def project(K: np.ndarray, c2w: np.ndarray, X: np.ndarray) -> np.ndarray:
+def project_to_pixels(K: np.ndarray, c2w: np.ndarray, X: np.ndarray) -> np.ndarray:
     """Pixel coordinates ``[N, 2]`` (OpenCV convention) of world points ``X [N, 3]``."""
     w2c = np.linalg.inv(c2w)
     Xc = X @ w2c[:3, :3].T + w2c[:3, 3]

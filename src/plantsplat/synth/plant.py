@@ -46,6 +46,7 @@ from plantsplat.synth.mesh import (
     rot_axis,
     tube_mesh,
 )
+from plantsplat.traitdefs import pca_widths, plant_height
 
 Z = np.array([0.0, 0.0, 1.0])
 HEIGHT_RANGE = (12.0, 35.0)
@@ -377,8 +378,6 @@ def make_plant(rng: np.random.Generator, pot: Pot, avoid_azimuth: float | None =
     ``avoid_azimuth`` (radians) keeps hanging fruit away from the cube's side of the pot;
     ``obstacle(points [N, 3]) -> bool`` says whether points collide with something else (the cube).
     """
-    from plantsplat.traitdefs import pca_widths, plant_height
-
     best = None
     for attempt in range(max_tries):
         meshes, info = _draw_plant(rng, pot, avoid_azimuth, obstacle)

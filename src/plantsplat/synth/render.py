@@ -18,6 +18,7 @@ Usage:
 
 from __future__ import annotations
 
+import moderngl
 import numpy as np
 
 from plantsplat.errors import PlantsplatError
@@ -157,8 +158,6 @@ class Renderer:
     def __init__(self, meshes: list[Mesh], layers: np.ndarray, intr: dict, lights: dict, samples: int = 4,
                  shadow_centre=(0.0, 0.0, 10.0), shadow_radius: float = 150.0, shadow_size: int = 4096,
                  object_classes: tuple[int, ...] = ()):
-        import moderngl
-
         try:
             self.ctx = moderngl.create_standalone_context(backend="egl")
         except Exception as exc:  # no EGL / Mesa
@@ -227,8 +226,6 @@ class Renderer:
 
     def render(self, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Render one view: ``(linear RGB [H, W, 3] float32, class ids [H, W] uint8)``, rows top-down."""
-        import moderngl
-
         W, H = self.intr["width"], self.intr["height"]
         rgb = self._colour(c2w, self.vao)
         self.prog_id["u_mvp"].write(self._mvp(c2w))
@@ -249,8 +246,6 @@ class Renderer:
         return (self.P @ np.linalg.inv(c2w)).T.astype("f4").tobytes()
 
     def _colour(self, c2w: np.ndarray, vao) -> np.ndarray:
-        import moderngl
-
         ctx = self.ctx
         W, H = self.intr["width"], self.intr["height"]
         ctx.enable(moderngl.DEPTH_TEST)

@@ -16,6 +16,7 @@ import numpy as np
 
 from plantsplat.cube import FACE_NAMES, CubeSpec
 from plantsplat.synth import textures as T
+from plantsplat.synth.camera import max_distance
 from plantsplat.synth.mesh import (
     CUBE_BASE,
     FLOOR,
@@ -260,8 +261,6 @@ def make_scene(rng: np.random.Generator, cube: CubeSpec = CubeSpec(), hard: bool
     meshes += pot_meshes(pot)
     meshes += cube_meshes(cube, T_wc)
     # room: the camera circles at most `clearance` cm from the pot axis; furniture and walls stay beyond
-    from plantsplat.synth.camera import max_distance
-
     pv = np.concatenate([m.v for m in plant_meshes])
     reach = max(np.linalg.norm(pv[:, :2], axis=1).max(), cube_d + cube.size * 0.75)
     clearance = max(max_distance(reach), plat_r) + 15.0

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from plantsplat.synth.camera import smooth_noise
@@ -76,8 +77,6 @@ class SensorModel:
 
     def develop(self, linear: np.ndarray, i: int, rng: np.random.Generator, blur_dir=(1.0, 0.0)) -> np.ndarray:
         """Linear radiance ``[H, W, 3]`` float32 of frame ``i`` -> sRGB uint8 ``[H, W, 3]``."""
-        import cv2
-
         gain = np.float32(self.base_gain * 2.0 ** self.exposure_ev[i]) * self.wb[i].astype(np.float32)  # [3]
         img = np.nan_to_num(linear, nan=0.0, posinf=0.0, neginf=0.0) * gain
         H, W = img.shape[:2]

@@ -13,6 +13,9 @@ Example:
 
 from __future__ import annotations
 
+import colorsys
+
+import cv2
 import numpy as np
 
 from plantsplat.cube import CubeSpec, marker_image
@@ -30,8 +33,6 @@ MARKER_FACE_TEXELS = 500
 
 def _noise(rng: np.random.Generator, size: int, cells: int) -> np.ndarray:
     """Smooth value noise in [0, 1] with about ``cells`` blobs per side. ``[size, size]``."""
-    import cv2
-
     g = rng.random((cells + 3, cells + 3)).astype(np.float32)
     up = cv2.resize(g, (size * (cells + 3) // cells,) * 2, interpolation=cv2.INTER_CUBIC)
     o = size // cells
@@ -58,15 +59,11 @@ def _to_u8(img: np.ndarray) -> np.ndarray:
 
 
 def _rand_colour(rng, sat=(0.3, 0.9), val=(0.3, 0.95), hue=None) -> np.ndarray:
-    import colorsys
-
     h = rng.random() if hue is None else hue
     return np.array(colorsys.hsv_to_rgb(h, rng.uniform(*sat), rng.uniform(*val)), np.float32)
 
 
 def _draw_text(img, rng, n, scale=(0.6, 2.0), colour=None):
-    import cv2
-
     words = ["PLANT", "SOIL", "BIO", "LAB", "GROW", "NO.", "FRAGILE", "2025", "MIX", "Ag", "STORE", "BOX",
              "SEED", "FOOD", "KEEP DRY", "THIS SIDE UP", "TRAY", "A-12", "Q7"]
     h, w = img.shape[:2]
@@ -78,8 +75,6 @@ def _draw_text(img, rng, n, scale=(0.6, 2.0), colour=None):
 
 
 def _shapes(img, rng, n, palette=None):
-    import cv2
-
     h, w = img.shape[:2]
     for _ in range(n):
         c = (255 * (palette[rng.integers(len(palette))] if palette is not None else _rand_colour(rng))).tolist()
@@ -108,8 +103,6 @@ def marker_face(marker_id: int, size: int = SIZE, cube: CubeSpec = CubeSpec()) -
 
 def make_layers(rng: np.random.Generator, size: int = SIZE, cube: CubeSpec = CubeSpec()) -> np.ndarray:
     """All texture layers for one seed: ``[N_LAYERS, size, size, 3]`` uint8 (sRGB)."""
-    import cv2
-
     L = np.zeros((N_LAYERS, size, size, 3), np.float32)
     yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) / size
     L[WHITE] = 1.0

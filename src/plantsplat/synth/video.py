@@ -8,11 +8,15 @@ Usage:
 from __future__ import annotations
 
 import contextlib
+import json
+import subprocess
+import sys
 from pathlib import Path
 
+import av
 import numpy as np
 
-from plantsplat.io import atomic_path
+from plantsplat.io import atomic_path, read_image
 
 
 class VideoWriter:
@@ -20,8 +24,6 @@ class VideoWriter:
 
     def __init__(self, path: str | Path, width: int, height: int, fps: int = 24, crf: int = 18,
                  preset: str = "veryfast"):
-        import av
-
         self._stack = contextlib.ExitStack()
         self._tmp = self._stack.enter_context(atomic_path(path))
         self.container = av.open(str(self._tmp), mode="w", format="mp4")
@@ -33,8 +35,6 @@ class VideoWriter:
         self.n = 0
 
     def write(self, rgb: np.ndarray) -> None:
-        import av
-
         frame = av.VideoFrame.from_ndarray(np.array(rgb, dtype=np.uint8, order="C", copy=True), format="rgb24")
         frame.pts = self.n  # timestamps from the frame count, not left to the library
         for packet in self.stream.encode(frame):
@@ -66,10 +66,6 @@ def encode_frames(frames: list[Path], path: Path, width: int, height: int, fps: 
     In the process that rendered the frames (OpenGL through llvmpipe), libx264 encoded the same frames to a
     different video from run to run (51 of 120 frames, up to 40 grey levels; the cause was not found); a process
     of its own encodes them the same every time."""
-    import json
-    import subprocess
-    import sys
-
     job = json.dumps({"frames": [str(f) for f in frames], "path": str(path), "width": width, "height": height,
                       "fps": fps, "crf": crf})
     done = subprocess.run([sys.executable, "-m", "plantsplat.synth.video"], input=job, text=True, capture_output=True)
@@ -79,11 +75,6 @@ def encode_frames(frames: list[Path], path: Path, width: int, height: int, fps: 
 
 
 def _encode_job() -> None:
-    import json
-    import sys
-
-    from plantsplat.io import read_image
-
     job = json.loads(sys.stdin.read())
     with VideoWriter(job["path"], job["width"], job["height"], job["fps"], crf=job["crf"]) as vw:
         for f in job["frames"]:

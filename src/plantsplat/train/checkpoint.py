@@ -53,12 +53,6 @@ def model_path(ws: Workspace, train_dir: Path | None = None) -> Path:
     return (Path(train_dir) if train_dir else ws.train_dir) / "model.pt"
 
 
-def train_outputs(ws: Workspace, cfg: TrainConfig) -> list[Path]:
-    """Files the train stage writes."""
-    paths = train_paths(ws, cfg)
-    return [paths["model"], paths["config"], paths["split"]] + ([paths["metrics"]] if cfg.evaluate else [])
-
-
 def save_checkpoint(path: str | os.PathLike, step: int, params, optimizers, strategy_state: dict, extra: dict) -> None:
     """Atomically save everything needed to resume training at ``step``."""
     blob = {

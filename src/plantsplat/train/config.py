@@ -67,7 +67,7 @@ class TrainConfig:
     """Where metrics are written (default WS/metrics.json)."""
 
     def resolved(self) -> ResolvedConfig:
-        from plantsplat.raster import resolve_backend
+        from plantsplat.raster import resolve_backend  # deferred: it loads torch, and the CLI imports this module
 
         backend = resolve_backend(self.backend)
         preset = self.preset if self.preset != "auto" else ("paper" if backend == "gsplat" else "cpu")

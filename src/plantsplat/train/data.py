@@ -17,11 +17,13 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_image, read_json, write_json_atomic
 from plantsplat.log import get_logger, progress
+from plantsplat.ply import read_point_cloud
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
@@ -66,6 +68,8 @@ class Scene:
 
 
 def _cameras_from_colmap(path: Path) -> tuple[dict[str, View], np.ndarray, np.ndarray]:
+    # deferred: importing pycolmap installs glog's handlers of fatal signals over the CLI's SIGTERM handler, so it
+    # loads only where a COLMAP model is read (the train, segment and traits stages end on SIGTERM like on Ctrl-C)
     import pycolmap
 
     try:
@@ -119,16 +123,12 @@ def _cameras_from_transforms(path: Path) -> dict[str, View]:
 
 def sparse_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """x, y, z [N, 3] and colours [N, 3] uint8 (grey where the PLY has none) of a point-cloud PLY."""
-    from plantsplat.ply import read_point_cloud
-
     cloud = read_point_cloud(path, "re-run `plantsplat poses`")
     cols = cloud["rgb"] if cloud["rgb"] is not None else np.full((len(cloud["xyz"]), 3), 128, np.uint8)
     return cloud["xyz"], cols
 
 
 def _undistort(img: np.ndarray, view: View, nearest: bool) -> np.ndarray:
-    import cv2
-
     if view.dist.size == 0 or not np.any(np.abs(view.dist) > 0):
         return img
     m1, m2 = cv2.initUndistortRectifyMap(view.K, view.dist, None, view.K, (view.width, view.height), cv2.CV_32FC1)
@@ -321,8 +321,6 @@ def visual_hull_points(views: list[View], center: np.ndarray, radius: float, n: 
     reconstructed: foreground PSNR 10.9 dB against 18.5 dB with 0.8, 600 steps on a synthetic capture
     with true cameras).
     """
-    import cv2
-
     masked = [v for v in views if v.mask is not None and (v.mask > 127).any()]
     if not masked:
         return np.zeros((0, 3))

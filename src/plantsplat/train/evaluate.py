@@ -43,9 +43,14 @@ import torch
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import write_image_atomic, write_json_atomic
 from plantsplat.log import get_logger, progress
+from plantsplat.raster import resolve_backend
+from plantsplat.segment.scores import mask_iou
+from plantsplat.segment.stored import segment_images
 from plantsplat.train import data as D
+from plantsplat.train.checkpoint import load_model
 from plantsplat.train.metrics import load_lpips, lpips, mask_interior, masked_mean, psnr, ssim, ssim_map
 from plantsplat.train.model import sh_degree_of
+from plantsplat.train.render import ImageCache, occluders_from, render
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
@@ -74,8 +79,6 @@ class _Evaluation:
 
 def _render_view(ev: _Evaluation, name: str, fps_repeats: int):
     """Render test view ``name`` over the background. Returns ``(pred, img, alpha, viewmat, K, w, h, seconds)``."""
-    from plantsplat.train.render import render
-
     img, alpha, K, w, h = ev.cache.get(name, 1)
     viewmat = torch.tensor(ev.views[name].viewmat, dtype=torch.float32, device=ev.device)
     t0 = time.perf_counter()
@@ -92,8 +95,6 @@ def _render_view(ev: _Evaluation, name: str, fps_repeats: int):
 
 def _score_view(ev: _Evaluation, name: str, pred, img, alpha, viewmat, K, w, h, save_dir: Path | None) -> dict:
     """One test view's row: composite, foreground and (full mode) PBR scores; its render saved to ``save_dir``."""
-    from plantsplat.train.render import render
-
     bg = ev.bg
     row = {"name": name}
     gt_fg = img * alpha + (1 - alpha) * bg if alpha is not None else None  # [h, w, 3]
@@ -120,8 +121,6 @@ def _score_view(ev: _Evaluation, name: str, pred, img, alpha, viewmat, K, w, h, 
 def _score_segmented_pbr(ws: Workspace, ev: _Evaluation, per_view: list[dict], pbr_renders: dict) -> str | None:
     """The paper's PBR: each test render segmented as the frames were, clipped by its own mask and scored.
     Adds ``pbr_segmented`` to the rows; returns the segmenter's error, if any."""
-    from plantsplat.segment.scores import mask_iou
-
     seg_masks, error = segment_renders(ws, pbr_renders)
     bg = ev.bg
     for row in per_view if seg_masks else ():
@@ -153,10 +152,6 @@ def _saved_views(names: list[str]) -> set[str]:
 
 def _evaluation(ws: Workspace, train_dir, lpips_weights, backend: str, scene):
     """The model, its test views and what scoring them needs. Returns ``(ev, names, cfg, split, scene, scale)``."""
-    from plantsplat.raster import resolve_backend
-    from plantsplat.train.checkpoint import load_model
-    from plantsplat.train.render import ImageCache, occluders_from
-
     params, extra = load_model(ws, train_dir)
     cfg, split = extra["config"], extra["split"]
     backend = resolve_backend(backend)
@@ -270,8 +265,6 @@ def mask_agreement(model_alpha: torch.Tensor, mask: torch.Tensor) -> dict:
     ``iou``, ``mask_rendered`` (the share of the mask the model draws) and ``render_in_mask`` (the share of what
     the model draws that the mask holds). A mask that takes room or leaves out plant tissue the other views show
     is not drawn by a model that has to agree with every view."""
-    from plantsplat.segment.scores import mask_iou
-
     a, m = model_alpha.reshape(mask.shape[:2]) > 0.5, mask.reshape(mask.shape[:2]) > 0.5
     both = float((a & m).sum())
     return {"iou": mask_iou(a, m), "mask_rendered": both / max(float(m.sum()), 1.0),
@@ -283,8 +276,6 @@ def segment_renders(ws: Workspace, renders: dict[str, np.ndarray]) -> tuple[dict
     segment stage's 3D object drawn into each test camera and refined on the render
     (:func:`plantsplat.segment.stored.segment_images`). Returns ``({name: [h, w] bool mask}, None)``, or
     ``(None, reason)`` when the workspace has no such object (masks imported, or not segmented here)."""
-    from plantsplat.segment.stored import segment_images
-
     log.info("PBR: segmenting %d test renders of the full model, as the paper removes the background after training",
              len(renders))
     try:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import torch
 
+from plantsplat.raster.ssim import photometric_loss_cpu
 from plantsplat.train.metrics import ssim as ssim_torch
 
 
@@ -30,8 +31,6 @@ def photometric_loss(color: torch.Tensor, alpha: torch.Tensor, bg: torch.Tensor,
     """
     if (color.device.type == "cpu" and gt.device.type == "cpu" and not gt.requires_grad and not bg.requires_grad
             and color.shape[-1] == 3 and (gt_alpha is None or not gt_alpha.requires_grad)):
-        from plantsplat.raster.ssim import photometric_loss_cpu
-
         return photometric_loss_cpu(color, alpha, bg, gt, ssim_lambda, gt_alpha)
     if gt_alpha is not None:
         gt = gt * gt_alpha + (1.0 - gt_alpha) * bg

@@ -16,6 +16,7 @@ Example:
 
 from __future__ import annotations
 
+import importlib.util
 import os
 from pathlib import Path
 
@@ -232,8 +233,6 @@ def default_lpips_weights() -> Path | None:
     if env:
         return Path(env)
     try:  # the lpips package ships its linear heads; a complete dump of the net is preferred
-        import importlib.util
-
         spec = importlib.util.find_spec("lpips")
         if spec and spec.origin:
             cand = Path(spec.origin).parent / "weights" / "v0.1" / "alex_full.pth"

@@ -28,6 +28,7 @@ import math
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 SH_C0 = 0.28209479177387814
 
@@ -43,8 +44,6 @@ def sh_to_rgb(sh0: torch.Tensor) -> torch.Tensor:
 
 def knn_mean_distance(points: np.ndarray, k: int = 3) -> np.ndarray:
     """Mean distance of each point to its ``k`` nearest neighbours, ``[N]`` (scipy cKDTree)."""
-    from scipy.spatial import cKDTree
-
     if len(points) <= 1:
         return np.ones(len(points))
     kk = min(k + 1, len(points))

@@ -11,10 +11,13 @@ Example:
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import torch
 
+from plantsplat.raster import rasterize
 from plantsplat.train import data as D
+from plantsplat.train.model import rgb_to_sh
 
 # Occluders start opaque and at half the model's initial size (half the mean distance to their 3 nearest
 # SfM neighbours): they stand for solid pot and soil. Pixels the plant leaves partly transparent go on
@@ -45,8 +48,6 @@ class ImageCache:
         return self._boxes[key]
 
     def get(self, name: str, down: int):
-        import cv2
-
         key = (name, down)
         if key not in self._cache:
             v = self.views[name]
@@ -95,9 +96,6 @@ def render(params, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: i
     of the model behind them (``trailing_background``), which leaves that composite and every gradient
     as they were but not ``alpha`` alone.
     """
-    from plantsplat.raster import rasterize
-    from plantsplat.train.model import rgb_to_sh
-
     k = (sh_degree + 1) ** 2
     colors = torch.cat([params["sh0"], params["shN"][:, : k - 1]], dim=1)  # [N, k, 3]
     means, quats, scales, opac = params["means"], params["quats"], params["scales"], params["opacities"]

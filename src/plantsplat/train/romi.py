@@ -17,20 +17,17 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from plantsplat.errors import PlantsplatError
-from plantsplat.io import read_image, write_image_atomic
+from plantsplat.io import read_image, read_json, write_image_atomic, write_json_atomic
 from plantsplat.workspace import IMAGE_PATTERN, Workspace
 
 
 def workspace_from_romi(src: str | os.PathLike, dst: str | os.PathLike, size: int | None = None,
                         background: tuple[int, int, int] = (0, 0, 0)) -> Workspace:
     """Build a workspace from a ROMI virtual-plant folder; ``size`` = output side in px (None = 896)."""
-    import cv2
-
-    from plantsplat.io import read_json, write_json_atomic
-
     src, ws = Path(src), Workspace(dst)
     metas = sorted((src / "metadata" / "images").glob("*_rgb.json"))
     if not metas:

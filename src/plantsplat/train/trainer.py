@@ -18,6 +18,7 @@ Usage:
 from __future__ import annotations
 
 import os
+import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -40,6 +41,7 @@ from plantsplat.train.checkpoint import (
     train_paths,
 )
 from plantsplat.train.config import ResolvedConfig, TrainConfig
+from plantsplat.train.evaluate import evaluate_workspace
 from plantsplat.train.loss import (
     MAX_NONFINITE_RUN,
     drop_nonfinite_grads,
@@ -142,8 +144,6 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
 
 def _publish(paths: dict, final: dict, metrics: bool) -> None:
     """Swap the finished run's folder in for the train folder, then its metrics in for ``metrics.json``."""
-    import shutil
-
     try:
         replace_dir(paths["dir"], final["dir"])
         if metrics:
@@ -329,8 +329,6 @@ def _finish(ws: Workspace, cfg: TrainConfig, rc: ResolvedConfig, paths: dict, s:
                      "occluders": occluder_tensors(occ)})
     paths["ckpt"].unlink(missing_ok=True)
     if cfg.evaluate:
-        from plantsplat.train.evaluate import evaluate_workspace
-
         summary["metrics"] = evaluate_workspace(ws, train_dir=paths["dir"], metrics_path=paths["metrics"],
                                                 lpips_weights=cfg.lpips_weights, backend=rc.backend,
                                                 train_summary=summary, scene=s.scene)

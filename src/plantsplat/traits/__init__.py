@@ -1,28 +1,17 @@
 """Plant traits from a reconstruction: clustering, cube calibration by plane fitting, measurement,
 figures and accuracy statistics.
 
+The stage's settings are :mod:`plantsplat.traits.config`; the stage over a workspace (``run``, ``inputs``,
+``outputs``) is :mod:`plantsplat.traits.stage`. The measurement of any point cloud is
+:func:`plantsplat.traits.measure.measure_traits`; accuracy against ground truth, :mod:`plantsplat.traits.stats`.
+Both load SciPy and Open3D, so they are imported where they are used.
+
 Usage:
-    from plantsplat.traits import measure_traits, accuracy_table
+    from plantsplat.traits.measure import measure_traits
     res = measure_traits(points, colors, calibrated=True)
     res.traits["height_cm"], res.quality
 """
 
 from plantsplat.traits.config import TraitsConfig
-from plantsplat.traits.measure import measure_traits
-from plantsplat.traits.result import TraitResult
-from plantsplat.traits.stats import (
-    accuracy_table,
-    format_table,
-    scatter_plots,
-    trait_metrics,
-)
 
-__all__ = [
-    "TraitResult",
-    "TraitsConfig",
-    "accuracy_table",
-    "format_table",
-    "measure_traits",
-    "scatter_plots",
-    "trait_metrics",
-]
+__all__ = ["TraitsConfig"]

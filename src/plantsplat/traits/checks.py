@@ -36,8 +36,15 @@ from plantsplat.checks import Check
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_json
 from plantsplat.log import get_logger
+from plantsplat.segment.object3d import find_pot, orbit_axis
+from plantsplat.train.data import load_scene
 
 log = get_logger(__name__)
+
+SOIL_DISC_SHARE = 0.8
+"""Where the rim stands for an unseen soil, the soil's disc is this share of the rim's radius (inside the pot wall)."""
+MIN_SFM_POINTS = 50
+"""The pot is looked for among the SfM points only when the model has at least this many."""
 
 
 @dataclass(frozen=True)
@@ -77,7 +84,7 @@ class QualityThresholds:
     nothing but that point."""
 
 
-def soil_level(ws, calibrated: bool) -> tuple[float | None, str, tuple | None]:
+def workspace_soil(ws, calibrated: bool) -> tuple[float | None, str, tuple | None]:
     """The soil surface's height (cm, cube frame), where it comes from, and the pot's inner disc
     ``(centre xy, radius)`` when the soil was not seen and the rim stands for it (then the plant's lowest
     point inside the pot bounds it: nothing of the plant grows below the soil); ``(None, why, None)``
@@ -100,24 +107,21 @@ def soil_level(ws, calibrated: bool) -> tuple[float | None, str, tuple | None]:
 
 
 def _soil_of(soil_z: float, rim_z: float, centre, rim_radius, source: str) -> tuple[float, str, tuple | None]:
-    """:func:`soil_level`'s answer for a pot: the soil, its source, and the pot's inner disc when the rim stood
+    """:func:`workspace_soil`'s answer for a pot: the soil, its source, and the pot's inner disc when the rim stood
     for an unseen soil."""
     if soil_z < rim_z:
         return float(soil_z), source, None
-    disc = (np.asarray(centre, float), 0.8 * float(rim_radius))
+    disc = (np.asarray(centre, float), SOIL_DISC_SHARE * float(rim_radius))
     return float(soil_z), source + " (soil not seen: at most the rim)", disc
 
 
 def _pot_from_sfm(ws):
     """The pot (:class:`plantsplat.segment.object3d.Pot`) found among the poses stage's SfM points, or None."""
-    from plantsplat.segment.object3d import find_pot, orbit_axis
-    from plantsplat.train.data import load_scene
-
     try:
         scene = load_scene(ws, need_masks=False, load_images=False)
     except PlantsplatError:
         return None
-    if len(scene.points) < 50:
+    if len(scene.points) < MIN_SFM_POINTS:
         return None
     axis = orbit_axis([np.linalg.inv(v.viewmat) for v in scene.views])
     return find_pot(scene.points, axis[:2])

@@ -24,6 +24,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
 
 from plantsplat.log import get_logger
 
@@ -38,8 +40,6 @@ def knn_spacing(points: np.ndarray, k: int = 8, sample: int = 5000, seed: int = 
         >>> knn_spacing(g, k=1)
         1.0
     """
-    from scipy.spatial import cKDTree
-
     pts = np.asarray(points, dtype=np.float64)  # [N, 3]
     if len(pts) <= k:
         raise ValueError(f"need more than {k} points to measure the point spacing, got {len(pts)}")
@@ -82,9 +82,6 @@ def dbscan(
     default ``points``) is the cloud whose point spacing sets the automatic radius (the Gaussian
     centres when ``points`` also holds extent samples).
     """
-    import open3d as o3d
-    from scipy.spatial import cKDTree
-
     pts = np.asarray(points, dtype=np.float64)  # [N, 3]
     rng = np.random.default_rng(seed)
     if len(pts) > max_points:
@@ -119,14 +116,15 @@ def dbscan(
     return labels, float(eps)
 
 
-def far_clusters_reason(excluded: list[dict], plant_points: int) -> str | None:
-    """The warning for clusters left out as far from the plant that hold more than 5 % of ``plant_points``, or None.
+def far_clusters_reason(excluded: list[dict], plant_points: int, share: float = 0.05) -> str | None:
+    """The warning for clusters left out as far from the plant that hold more than ``share`` (5 %) of
+    ``plant_points``, or None.
 
     Example:
         >>> far_clusters_reason([{"label": 3, "points": 900, "reason": "far from the plant"}], 10000)
         '1 large cluster(s) left out as too far from the plant (900 points): check the plant is not split'
     """
-    big = [e for e in excluded if e["reason"] == "far from the plant" and e["points"] > 0.05 * plant_points]
+    big = [e for e in excluded if e["reason"] == "far from the plant" and e["points"] > share * plant_points]
     if not big:
         return None
     return (f"{len(big)} large cluster(s) left out as too far from the plant "
@@ -153,8 +151,6 @@ class PlantSelection:
 def _linked_groups(pts, labels, pieces: list[int], sizes: dict[int, int], merge_distance: float | None):
     """``root(label)``: the group of each piece, pieces linked by gaps of at most ``merge_distance`` (single
     linkage); one group for all without a distance."""
-    from scipy.spatial import cKDTree
-
     group = {i: pieces[0] if merge_distance is None else i for i in pieces}
 
     def root(i):
@@ -186,11 +182,14 @@ def select_plant(
     min_cluster_fraction: float = 0.002,
     min_cluster_points: int = 10,
     max_pieces: int = 12,
+    min_main_share: float = 0.25,
 ) -> PlantSelection | None:
     """The plant: every cluster that is not excluded (the cube) nor a floater (fewer points than
     ``min_cluster_fraction`` of the largest cluster's). With a ``merge_distance``, only the group of
     clusters linked by gaps of at most that distance (separated leaves, fruit on thin peduncles) that
-    holds the most points. Returns None when no cluster is left.
+    holds the most points. Returns None when no cluster is left. With a ``merge_distance``, a plant of more than
+    ``max_pieces`` clusters, or whose largest cluster holds less than ``min_main_share`` of its points, is flagged as
+    fragmented.
 
     Example:
         >>> rng = np.random.default_rng(1)
@@ -238,7 +237,7 @@ def select_plant(
         if len(chosen) > max_pieces:
             reasons.append(f"plant assembled from {len(chosen)} clusters (more than {max_pieces}): "
                            "reconstruction is fragmented")
-        if main_fraction < 0.25:
+        if main_fraction < min_main_share:
             reasons.append(f"largest plant cluster holds only {main_fraction:.0%} of the plant's points: "
                            "reconstruction is fragmented")
     return PlantSelection(mask=mask, clusters=chosen, main_fraction=float(main_fraction), excluded=excluded, reasons=reasons)

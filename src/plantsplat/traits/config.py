@@ -100,6 +100,27 @@ def cube_edge_cm(s: TraitsConfig, cube: CubeSpec | None) -> float:
 
 
 @dataclass(frozen=True)
+class MeasureConfig:
+    """How the plant is told from the rest of the cloud beside the cube fit (:mod:`plantsplat.traits.measure`). Not
+    options: the values the traits benchmark (``benchmarks/bench_traits.py``) and the foreign renders were measured
+    with."""
+
+    cube_axes_tolerance: float = 0.03
+    """Flag the result when the cube's edges measured along its three axes differ by more than this share of their
+    mean: the cube is distorted in the reconstruction."""
+    below_ground_quantile: float = 0.9
+    """A cluster is under the ground when it lies wholly below z = 0, or this quantile of its heights lies more than a
+    centimetre below it (the Gaussians' ends reach a little under what they draw)."""
+    fragment_ratio: int = 20
+    """A cluster nearer the cube's box than the plant's body is a piece of the cube when it holds less than 1/this of
+    the body's points."""
+    body_sample: int = 20000
+    """The plant body's points that cube fragments are compared with: a random subset of at most this many."""
+    min_plant_points: int = 50
+    """A plant of fewer points than this is not measured (the reconstruction is too sparse)."""
+
+
+@dataclass(frozen=True)
 class CubeFitConfig:
     """How the calibration cube is recognised among the clusters and measured (:mod:`plantsplat.traits.cube_fit`).
     Lengths are shares of the cube's edge unless said otherwise; the values are those the traits benchmark

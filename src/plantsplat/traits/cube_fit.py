@@ -30,6 +30,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import open3d as o3d
 
 from plantsplat.cube import FACE_NAMES, CubeSpec
 from plantsplat.log import get_logger
@@ -135,8 +136,6 @@ class CubeFit:
 
 def _robust_obb(points: np.ndarray, max_hull_points: int = 5000):
     """Minimal OBB axes ``[3, 3]`` (rows) and the 1 %..99 % extents of the points along them."""
-    import open3d as o3d
-
     sub = points
     if len(points) > max_hull_points:  # the box orientation from a subset; extents from all points
         sub = points[np.random.default_rng(0).choice(len(points), max_hull_points, replace=False)]
@@ -267,8 +266,6 @@ def _lsq_plane(pts: np.ndarray) -> tuple[np.ndarray, float, float]:
 
 def _ransac_planes(pts: np.ndarray, thr: float, max_planes: int, iterations: int, seed: int):
     """Planes found one after another by RANSAC (Open3D), each refitted by least squares."""
-    import open3d as o3d
-
     o3d.utility.random.seed(seed)
     remaining = np.arange(len(pts))
     planes: list[tuple[np.ndarray, float]] = []

@@ -10,9 +10,16 @@ Touching fruit merge into one cluster and are counted once.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
+import open3d as o3d
+from matplotlib.colors import rgb_to_hsv
+from scipy.spatial import cKDTree
 
 from plantsplat.traits.config import TraitsConfig
+
+FULL_TURN_DEG = 360.0
+"""Degrees in a full turn of the hue circle (red at 0 and at the full turn)."""
 
 
 def fruit_mask(colors: np.ndarray, s: TraitsConfig) -> np.ndarray:
@@ -22,11 +29,9 @@ def fruit_mask(colors: np.ndarray, s: TraitsConfig) -> np.ndarray:
         >>> fruit_mask(np.array([[200, 20, 30], [40, 160, 50], [250, 250, 250]], np.uint8), TraitsConfig()).tolist()
         [True, False, False]
     """
-    from matplotlib.colors import rgb_to_hsv  # deferred: matplotlib is slow to load
-
     hsv = rgb_to_hsv(np.asarray(colors, dtype=np.float64).reshape(-1, 3) / 255.0)  # [N, 3] in 0..1
-    hue_deg = hsv[:, 0] * 360.0
-    red = np.minimum(hue_deg, 360.0 - hue_deg) <= s.fruit_hue_deg
+    hue_deg = hsv[:, 0] * FULL_TURN_DEG
+    red = np.minimum(hue_deg, FULL_TURN_DEG - hue_deg) <= s.fruit_hue_deg
     return red & (hsv[:, 1] >= s.fruit_min_saturation) & (hsv[:, 2] >= s.fruit_min_value)
 
 
@@ -42,8 +47,6 @@ def unripe_fruit_mask(colors: np.ndarray) -> np.ndarray:
         >>> unripe_fruit_mask(np.array([[190, 196, 140], [40, 160, 50], [200, 20, 30]], np.uint8)).tolist()
         [True, False, False]
     """
-    import cv2  # deferred: OpenCV is slow to load, and the CLI loads this package to read its options
-
     hsv = cv2.cvtColor(np.ascontiguousarray(np.asarray(colors, np.uint8).reshape(1, -1, 3)), cv2.COLOR_RGB2HSV)[0]
     lo, hi = (np.array(b, np.uint8) for b in UNRIPE_HSV)
     return np.all((hsv >= lo) & (hsv <= hi), axis=1)
@@ -65,17 +68,17 @@ def fruit_sized(points: np.ndarray, max_cm: float) -> bool:
     return bool(ext[1] <= max_cm and ext[0] <= 2.0 * max_cm)
 
 
-def count_fruit(points_cm: np.ndarray, colors: np.ndarray, s: TraitsConfig) -> tuple[int, np.ndarray]:
-    """Count fruit among the plant's points: ``(count, centres [F, 3])``."""
-    import open3d as o3d  # deferred: heavy
-
+def count_fruit(points_cm: np.ndarray, colors: np.ndarray, s: TraitsConfig, core_points: int = 5
+                ) -> tuple[int, np.ndarray]:
+    """Count fruit among the plant's points: ``(count, centres [F, 3])``. The fruit-coloured points are grouped by
+    DBSCAN (radius ``s.fruit_eps_cm``, ``core_points`` neighbours make a core point)."""
     m = fruit_mask(colors, s)
     if m.sum() < s.fruit_min_points:
         return 0, np.zeros((0, 3))
     fp = points_cm[m]
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(fp))
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        lab = np.asarray(pc.cluster_dbscan(eps=s.fruit_eps_cm, min_points=5), dtype=np.int64)
+        lab = np.asarray(pc.cluster_dbscan(eps=s.fruit_eps_cm, min_points=core_points), dtype=np.int64)
     centres = []
     for i in range(lab.max() + 1):
         q = fp[lab == i]
@@ -100,8 +103,6 @@ def is_hanging_fruit(q, cols_q, s: TraitsConfig, top: float) -> bool:
 def join_fruit(pts_cm, cols, labels, sel, s: TraitsConfig, notes: list[str]) -> list:
     """Fruit-coloured clusters left out as far from the plant but hanging within ``s.fruit_join_cm`` of
     it join the plant (fruit on peduncles too thin to reconstruct). Updates ``sel`` in place."""
-    from scipy.spatial import cKDTree  # deferred: slow to load (see unripe_fruit_mask)
-
     tree = cKDTree(pts_cm[sel.mask])
     top = float(pts_cm[sel.mask, 2].max())
     joined = []

@@ -37,17 +37,25 @@ import time
 from dataclasses import asdict
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from plantsplat import traitdefs
 from plantsplat.cube import CubeSpec, in_cube_box
 from plantsplat.log import get_logger
 from plantsplat.traits.cluster import dbscan, far_clusters_reason, select_plant
-from plantsplat.traits.config import ROBUST_KEYS, TraitsConfig, cube_edge_cm
+from plantsplat.traits.config import ROBUST_KEYS, MeasureConfig, TraitsConfig, cube_edge_cm
 from plantsplat.traits.cube_fit import cube_frame_transform, decide_up, find_cube_cluster, fit_cube_planes, use_envelope
 from plantsplat.traits.fruit import count_fruit, join_fruit
 from plantsplat.traits.result import TraitResult, failed_result
 
 log = get_logger(__name__)
+
+SETTINGS = MeasureConfig()
+"""The tuning of the plant's selection (every value documented in :class:`MeasureConfig`)."""
+LISTED_CANDIDATES = 8
+"""``traits.json`` lists this many of the cube's candidate clusters, the likeliest first."""
+LISTED_EXCLUDED = 20
+"""``traits.json`` lists this many of the clusters left out of the plant."""
 
 
 def _filter_cloud(points, colors, opacity, scales, centre_mask, s: TraitsConfig, calibrated: bool):
@@ -159,8 +167,9 @@ def _check_cube_axes(cube_fit, scale: dict, calibrated: bool, reasons: list[str]
     measured = [e for e in cube_fit.edge_per_axis if e is not None]
     k = 1.0 if calibrated else scale["scale"]
     scale["cube_edge_cm_per_axis"] = [None if e is None else e * k for e in cube_fit.edge_per_axis]
-    if len(measured) > 1 and (max(measured) - min(measured)) / np.mean(measured) > 0.03:
-        reasons.append("the cube's edges measured along different axes differ by more than 3 %: the cube is "
+    if len(measured) > 1 and (max(measured) - min(measured)) / np.mean(measured) > SETTINGS.cube_axes_tolerance:
+        reasons.append(f"the cube's edges measured along different axes differ by more than "
+                       f"{100 * SETTINGS.cube_axes_tolerance:.0f} %: the cube is "
                        "distorted in the reconstruction")
 
 
@@ -172,7 +181,7 @@ def _clusters_below_ground(pts_cm, labels, excl: set) -> list[int]:
         if i in excl:
             continue
         zi = pts_cm[labels == i, 2]
-        if len(zi) and (zi.max() < 0.0 or np.quantile(zi, 0.9) < -1.0):
+        if len(zi) and (zi.max() < 0.0 or np.quantile(zi, SETTINGS.below_ground_quantile) < -1.0):
             below.append(i)
     return below
 
@@ -200,8 +209,6 @@ def _cube_fragments(pts_cm, labels, excl: set, size: float) -> list[int]:
     """Small clusters that belong to the cube rather than to the plant: nearer the cube's box than the plant's body
     (the largest cluster left) and under a twentieth of its size. Pieces of the cube's faces whose Gaussians sit
     just outside its box make such clusters; a leaf apart from its petiole hangs nearer its own plant."""
-    from scipy.spatial import cKDTree  # deferred: slow to load, and the CLI loads this package for its options
-
     ids = [i for i in range(int(labels.max() + 1)) if i not in excl and (labels == i).any()]
     if len(ids) < 2:
         return []
@@ -209,11 +216,11 @@ def _cube_fragments(pts_cm, labels, excl: set, size: float) -> list[int]:
     body = max(ids, key=sizes.get)
     rng = np.random.default_rng(0)
     b = pts_cm[labels == body]
-    tree = cKDTree(b[rng.choice(len(b), min(len(b), 20000), replace=False)])
+    tree = cKDTree(b[rng.choice(len(b), min(len(b), SETTINGS.body_sample), replace=False)])
     h = size / 2
     out = []
     for i in ids:
-        if i == body or sizes[i] * 20 > sizes[body]:
+        if i == body or sizes[i] * SETTINGS.fragment_ratio > sizes[body]:
             continue
         q = pts_cm[labels == i]
         to_box = np.linalg.norm(np.maximum(np.abs(q[:, :2]) - h, 0.0), axis=1) + np.maximum(q[:, 2] - size, 0.0)
@@ -330,7 +337,7 @@ def measure_traits(
     cand_info = [
         {"label": c.label, "points": c.points, "extents": np.round(c.extents, 4).tolist(), "accepted": c.accepted,
          "score": round(c.score, 4), "why_not": c.why}
-        for c in cands[:8]
+        for c in cands[:LISTED_CANDIDATES]
     ]
     clusters_info: dict = {"filter": filt, "eps": eps, "eps_first_pass": first_eps, "min_points": s.min_points,
                            "n_clusters": int(labels.max() + 1), "noise_points": int((labels < 0).sum()),
@@ -378,10 +385,10 @@ def measure_traits(
         sel.reasons.append(far)
     reasons.extend(sel.reasons)
     clusters_info.update({"plant_clusters": sel.clusters, "fruit_joined": joined, "plant_main_fraction": sel.main_fraction,
-                          "excluded": sel.excluded[:20], "plant_points": int(plant_mask.sum())})
+                          "excluded": sel.excluded[:LISTED_EXCLUDED], "plant_points": int(plant_mask.sum())})
     P = pts_cm[plant_mask]  # [M, 3]
     C = None if cols is None else cols[plant_mask]
-    if len(P) < 50:
+    if len(P) < SETTINGS.min_plant_points:
         return failed_result(f"the plant has only {len(P)} points: the reconstruction is too sparse to measure",
                        s, scale=scale, cube=cube_json, clusters=clusters_info)
     if P[:, 2].min() < -1.0:

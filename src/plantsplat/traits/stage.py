@@ -28,8 +28,10 @@ from plantsplat.io import csv_cell, read_json, write_json_atomic, write_text_ato
 from plantsplat.log import get_logger
 from plantsplat.markers import recorded_cube
 from plantsplat.ply import is_splat, read_point_cloud, read_splat_extent_cloud
-from plantsplat.traits.checks import result_checks, soil_level, stage_checks
+from plantsplat.segment.object3d import POT_SLAB_CM
+from plantsplat.traits.checks import result_checks, stage_checks, workspace_soil
 from plantsplat.traits.config import ROBUST_KEYS, TraitsConfig, cube_edge_cm
+from plantsplat.traits.figures import traits_figure
 from plantsplat.traits.height import height_bounds, soil_interval
 from plantsplat.traits.measure import measure_traits
 from plantsplat.traits.result import TraitResult
@@ -85,7 +87,7 @@ def run(ws, cfg=None, *, points_path: str | Path | None = None, calibrated: bool
 
     Reads ``WS/export/points.ply`` (or ``points_path``) and ``WS/poses.json`` (``scale_source``
     'aruco' means calibrated), writes ``traits.json``, ``traits.csv`` and ``traits.png``. The height is
-    measured from the soil (:func:`plantsplat.traits.checks.soil_level`). ``quality`` is ``failed`` when
+    measured from the soil (:func:`plantsplat.traits.checks.workspace_soil`). ``quality`` is ``failed`` when
     nothing could be measured or a check of a stage or of the measurement fails (the files are written
     all the same; the commands then exit with :data:`plantsplat.errors.EXIT_RESULT_FAILED`).
 
@@ -127,7 +129,7 @@ def run(ws, cfg=None, *, points_path: str | Path | None = None, calibrated: bool
         data = read_point_cloud(ply, "run `plantsplat export` first or pass --points")
     log.info("traits: %s (%d points, %s)", ply, len(data["xyz"]), "calibrated cm" if calibrated else "unscaled")
     cams = camera_centres(ws)
-    soil_z, soil_source, soil_disc = soil_level(ws, calibrated)
+    soil_z, soil_source, soil_disc = workspace_soil(ws, calibrated)
     cube = recorded_cube(ws.markers_json)  # the cube the poses stage measured with
     res = measure_traits(data["xyz"], data["rgb"], calibrated=calibrated, opacity=data["opacity"],
                          scales=data["scales"], camera_centres=None if calibrated else cams, settings=s,
@@ -145,8 +147,6 @@ def run(ws, cfg=None, *, points_path: str | Path | None = None, calibrated: bool
     write_json_atomic(ws.traits_json, out)
     write_text_atomic(ws.traits_csv, traits_csv_text(out, ws.root.name))
     if figure and res.plant_points is not None:
-        from plantsplat.traits.figures import traits_figure  # deferred: matplotlib is slow to load
-
         traits_figure(res, ws.traits_png, title=ws.root.name)
     if out["quality"] == "failed":
         log.error("traits: FAILED: %s (details in %s)", "; ".join(out["quality_reasons"][:3]), ws.traits_json)
@@ -160,8 +160,6 @@ def run(ws, cfg=None, *, points_path: str | Path | None = None, calibrated: bool
 def _height_bounds(out: dict, res: TraitResult, soil_z: float | None, disc: tuple | None, scale_se: float | None):
     """The soil's interval and the height's bounds (:mod:`plantsplat.traits.height`) into ``out``
     (``soil_interval_cm``, ``height_bounds_cm``); returns the soil interval (None: no pot, or no plant)."""
-    from plantsplat.segment.object3d import POT_SLAB_CM  # deferred: the segment package loads torch
-
     P = res.plant_points
     if P is None or not len(P) or out.get("height_cm") is None:
         return None

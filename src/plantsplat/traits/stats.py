@@ -20,9 +20,33 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
 
+from plantsplat.io import atomic_path
 from plantsplat.traitdefs import TRAIT_LABELS, TRAIT_UNITS
+
+PANEL_SIZE_IN = 4.3
+"""Width and height of one trait's panel in :func:`scatter_plots` (inches)."""
+PLOT_DPI = 110
+"""Resolution of the scatter plots' PNG (dots per inch)."""
+PLOT_PAD = 0.08
+"""The axes reach this share of the data's range beyond it on each side."""
+MARKER_AREA = 28
+"""Area of one plant's marker (points squared)."""
+IDEAL_LINE_WIDTH = 1.2
+"""Width of the dashed y = x line (points)."""
+FIT_LINE_WIDTH = 1.5
+"""Width of the fitted line (points)."""
+STATS_CORNER = (0.04, 0.96)
+"""Where the panel's R2 / RMSE / MAPE text starts (axes fraction, top left)."""
+STATS_FONT_SIZE = 9
+"""Font size of the panel's R2 / RMSE / MAPE text."""
+LEGEND_FONT_SIZE = 8
+"""Font size of the legends."""
+GRID_ALPHA = 0.3
+"""Opacity of the grid lines."""
 
 
 def _pair(truth, estimate) -> tuple[np.ndarray, np.ndarray]:
@@ -209,15 +233,9 @@ def scatter_plots(
     Usage:
         scatter_plots(estimates, truths, ["height_cm"], "bench/scatter.png")
     """
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from plantsplat.io import atomic_path
-
     table = accuracy_table(estimates, truths, traits)
-    fig, axs = plt.subplots(1, len(traits), figsize=(4.3 * len(traits), 4.3), squeeze=False)
+    fig, axs = plt.subplots(1, len(traits), figsize=(PANEL_SIZE_IN * len(traits), PANEL_SIZE_IN), squeeze=False)
     for ax, key in zip(axs[0], traits):
         y, yh = _align(estimates, truths, key)
         ok = np.isfinite(y) & np.isfinite(yh)
@@ -229,14 +247,14 @@ def scatter_plots(
             continue
         lo = min(y.min(), yh.min())
         hi = max(y.max(), yh.max())
-        pad = 0.08 * (hi - lo if hi > lo else max(abs(hi), 1.0))
+        pad = PLOT_PAD * (hi - lo if hi > lo else max(abs(hi), 1.0))
         lim = (lo - pad, hi + pad)
-        ax.scatter(y, yh, s=28, c="tab:blue", edgecolors="k", linewidths=0.5, zorder=3)
-        ax.plot(lim, lim, "k--", lw=1.2, label="y = x")
+        ax.scatter(y, yh, s=MARKER_AREA, c="tab:blue", edgecolors="k", linewidths=0.5, zorder=3)
+        ax.plot(lim, lim, "k--", lw=IDEAL_LINE_WIDTH, label="y = x")
         m = table[key]
         if np.isfinite(m.get("slope", np.nan)):
             xs = np.array(lim)
-            ax.plot(xs, m["slope"] * xs + m["intercept"], "r-", lw=1.5,
+            ax.plot(xs, m["slope"] * xs + m["intercept"], "r-", lw=FIT_LINE_WIDTH,
                     label=f"fit y = {m['slope']:.2f}x {m['intercept']:+.2f}")
         ax.set_xlim(lim)
         ax.set_ylim(lim)
@@ -245,13 +263,13 @@ def scatter_plots(
         ax.set_xlabel(f"ground truth{u}")
         ax.set_ylabel(f"estimate{u}")
         ax.set_title(label)
-        ax.text(0.04, 0.96, f"$R^2$ = {m['r2']:.3f}\nRMSE = {m['rmse']:.2f}{u and ' ' + unit}\n"
-                f"MAPE = {m['mape']:.2f} %\nn = {m['n']}", transform=ax.transAxes, va="top", fontsize=9)
-        ax.legend(loc="lower right", fontsize=8)
-        ax.grid(alpha=0.3)
+        ax.text(*STATS_CORNER, f"$R^2$ = {m['r2']:.3f}\nRMSE = {m['rmse']:.2f}{u and ' ' + unit}\n"
+                f"MAPE = {m['mape']:.2f} %\nn = {m['n']}", transform=ax.transAxes, va="top", fontsize=STATS_FONT_SIZE)
+        ax.legend(loc="lower right", fontsize=LEGEND_FONT_SIZE)
+        ax.grid(alpha=GRID_ALPHA)
     if title:
         fig.suptitle(title)
     fig.tight_layout()
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110)
+        fig.savefig(tmp, dpi=PLOT_DPI)
     plt.close(fig)
