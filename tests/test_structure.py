@@ -301,3 +301,17 @@ def test_the_stages_tuning_constants_are_named():
 def test_the_literal_rule_finds_numbers():
     tree = ast.parse("X = 0.7\n\n\ndef f(x, y=0.2):\n    return x * 0.3 + 0.5 + 1e-9 + 2 + -1 + 17\n")
     assert sorted(_literals(tree)) == [(5, 0.3), (5, 17)]
+
+
+def test_loading_pycolmap_keeps_the_sigterm_handler(tmp_path):
+    """Importing pycolmap installs glog's handlers of fatal signals over SIGTERM's; :func:`load_pycolmap` puts the
+    process's own handler back, so that a SIGTERM during the poses stage takes the Ctrl-C path (issue 42 #7)."""
+    import signal
+    import subprocess
+    import sys
+
+    script = ("import os, signal, sys\nfrom plantsplat.pycolmap_loader import load_pycolmap\nseen = []\n"
+              "signal.signal(signal.SIGTERM, lambda s, f: seen.append(s))\nload_pycolmap()\n"
+              "os.kill(os.getpid(), signal.SIGTERM)\nprint('handled', seen)\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and f"handled [{int(signal.SIGTERM)}]" in out.stdout, out.stderr[-2000:]

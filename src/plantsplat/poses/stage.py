@@ -43,6 +43,7 @@ from plantsplat.poses.estimate import (
 )
 from plantsplat.poses.interop import write_colmap, write_points_ply, write_transforms
 from plantsplat.poses.sfm import colmap_logging, n_threads_env
+from plantsplat.pycolmap_loader import load_pycolmap
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
@@ -84,6 +85,7 @@ def run(ws: Workspace | str | Path, cfg: PosesConfig | None = None) -> dict:
     """
     cfg = cfg or PosesConfig()
     ws = ws if isinstance(ws, Workspace) else Workspace(ws)
+    load_pycolmap()  # the poses modules' import of pycolmap replaced the CLI's SIGTERM handler: it is put back
     if cfg.import_colmap is not None and cfg.import_transforms is not None:
         raise UsageError("pass only one of --import-colmap and --import-transforms")
     ws.require(ws.images_dir, "frames")

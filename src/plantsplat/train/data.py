@@ -24,6 +24,7 @@ from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_image, read_json, write_json_atomic
 from plantsplat.log import get_logger, progress
 from plantsplat.ply import read_point_cloud
+from plantsplat.pycolmap_loader import load_pycolmap
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
@@ -68,9 +69,7 @@ class Scene:
 
 
 def _cameras_from_colmap(path: Path) -> tuple[dict[str, View], np.ndarray, np.ndarray]:
-    # deferred: importing pycolmap installs glog's handlers of fatal signals over the CLI's SIGTERM handler, so it
-    # loads only where a COLMAP model is read (the train, segment and traits stages end on SIGTERM like on Ctrl-C)
-    import pycolmap
+    pycolmap = load_pycolmap()  # only where a COLMAP model is read, with the CLI's SIGTERM handler kept
 
     try:
         rec = pycolmap.Reconstruction(str(path))
