@@ -36,7 +36,7 @@ from plantsplat.poses.checks import face_offsets, facing_away, off_path, off_pat
 from plantsplat.poses.config import LOGGED_NAMES, WORK_DIR, PosesConfig
 from plantsplat.poses.consistency import contradicted, contradiction, pair_errors
 from plantsplat.poses.imports import name_map, rename_images
-from plantsplat.poses.interop import c2w_opencv, read_colmap, read_transforms
+from plantsplat.poses.interop import c2w_opencv, read_colmap, read_transforms, registered_images
 from plantsplat.poses.localize import add_frames, localize_frames
 from plantsplat.poses.pairs import build_vocabulary, pairs_for_missing, retrieval_pairs, video_pairs
 from plantsplat.poses.sfm import (
@@ -53,11 +53,6 @@ from plantsplat.poses.sfm import (
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
-
-
-def registered_images(rec) -> dict:
-    """The frames of model ``rec`` that have a camera, by name."""
-    return {im.name: im for im in rec.images.values() if im.has_pose}
 
 
 def shown_names(names: list[str]) -> str:

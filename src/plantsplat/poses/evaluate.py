@@ -66,7 +66,7 @@ def compare_poses(est: dict[str, np.ndarray], ref: dict[str, np.ndarray]) -> dic
 
 def model_c2w(rec) -> dict[str, np.ndarray]:
     """``{name: camera-to-world 4x4}`` (OpenCV axes) of the registered images of a pycolmap model."""
-    return {im.name: c2w_opencv(im) for im in registered_images(rec)}
+    return {name: c2w_opencv(im) for name, im in registered_images(rec).items()}
 
 
 def transforms_c2w(data: dict) -> dict[str, np.ndarray]:

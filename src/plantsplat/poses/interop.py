@@ -68,9 +68,9 @@ def c2w_opencv(image) -> np.ndarray:
     return M
 
 
-def registered_images(rec) -> list:
-    """Registered images of a reconstruction, sorted by name."""
-    return sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
+def registered_images(rec) -> dict:
+    """The frames of model ``rec`` that have a camera, by name (in name order)."""
+    return {im.name: im for im in sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)}
 
 
 def write_colmap(rec, out_dir: Path, text: bool = False) -> None:
@@ -136,7 +136,7 @@ def write_transforms(
     there). ``extra`` keys (e.g. ``applied_transform``, ``scale``) are added at the top level.
     Returns the written dict.
     """
-    images = registered_images(rec)
+    images = list(registered_images(rec).values())
     cam_ids = {im.camera_id for im in images}
     if len(cam_ids) != 1:
         raise PlantsplatError(f"{path}: the model has {len(cam_ids)} cameras; plantsplat expects one shared camera")

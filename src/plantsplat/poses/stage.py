@@ -38,10 +38,9 @@ from plantsplat.poses.estimate import (
     localize_left_out,
     model_checks,
     register,
-    registered_images,
     shown_names,
 )
-from plantsplat.poses.interop import write_colmap, write_points_ply, write_transforms
+from plantsplat.poses.interop import registered_images, write_colmap, write_points_ply, write_transforms
 from plantsplat.poses.sfm import colmap_logging, n_threads_env
 from plantsplat.pycolmap_loader import load_pycolmap
 from plantsplat.workspace import Workspace
