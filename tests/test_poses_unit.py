@@ -409,3 +409,31 @@ def test_object_scale_measures_the_model_near_the_object():
             track.add_element(im.image_id, len(im.points2D) - 1)
         rec.add_point3D((1.02 * X).reshape(3, 1), track, np.zeros(3, np.uint8))  # the model's point: 2 % out
     assert object_scale(rec, gt, K) == pytest.approx(1 / 1.02, rel=1e-6)
+
+
+def test_a_failed_matching_process_stops_the_others_with_one_line(tmp_path):
+    """A matching process that fails (here one that exits with code 3) is reported at once, while another still runs,
+    with its code, its last line and what to do; the caller's ``finally`` then stops the others."""
+    import subprocess
+    import sys
+    import time
+
+    from plantsplat.errors import PlantsplatError
+    from plantsplat.poses import sfm
+
+    parts = [tmp_path / "w0", tmp_path / "w1"]
+    procs = []
+    for part, code in zip(parts, ("import time; time.sleep(60)", "import sys; print('bad pairs'); sys.exit(3)")):
+        part.mkdir()
+        with open(part / "log.txt", "wb") as log:
+            procs.append(subprocess.Popen([sys.executable, "-c", code], stdout=log, stderr=subprocess.STDOUT))
+    t0 = time.perf_counter()
+    try:
+        with pytest.raises(PlantsplatError) as err:
+            sfm._wait_workers(tmp_path / "database.db", procs, parts)
+    finally:
+        procs[0].kill()
+        procs[0].wait()
+    msg = str(err.value)
+    assert time.perf_counter() - t0 < 30 and "\n" not in msg
+    assert "code 3" in msg and "bad pairs" in msg and "--poses.num-threads 1" in msg

@@ -90,6 +90,18 @@ class StageMeter:
         return False
 
 
+def usable_cores() -> int:
+    """Cores this process may use for its own thread pools: the share ``plantsplat batch`` gives each of its workers
+    (``NUMBA_NUM_THREADS``, which it sets), else the cores the process may run on (its CPU affinity)."""
+    share = os.environ.get("NUMBA_NUM_THREADS", "")
+    if share.isdigit() and int(share) > 0:
+        return int(share)
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # no affinity on this platform (macOS)
+        return os.cpu_count() or 1
+
+
 def machine_info() -> dict:
     """CPU, cores, memory, load and library versions, for benchmark results and run.json."""
     info: dict = {

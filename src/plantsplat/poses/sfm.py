@@ -22,11 +22,13 @@ import shutil
 import sqlite3
 import subprocess
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+import plantsplat
 from plantsplat.errors import PlantsplatError
 from plantsplat.log import get_logger
 
@@ -43,6 +45,8 @@ matches every time, at about 1.4 times the matching time (22 s instead of 15 s f
 runs several one-thread processes instead."""
 MIN_PAIRS_PER_WORKER = 50
 """Pairs below which another matching process costs more (start-up, a database copy) than it saves."""
+WORKER_POLL_S = 0.2
+"""How often the matching processes are looked at (a failed one stops the others at once)."""
 
 
 @dataclass
@@ -144,7 +148,7 @@ def match_pairs(db: Path, work_dir: Path, pairs: list[tuple[str, str]], opts: Sf
     With ``opts.num_threads`` > 1 the pairs are dealt out to that many processes
     (:mod:`plantsplat.poses.match_worker`), each matching on one thread into its own copy of the database, and their
     matches are gathered into ``db``. A pair's matches and verified geometry
-    depend on that pair alone (seeded RANSAC; tested), so the database is the same as one process would write,
+    depend on that pair alone (seeded RANSAC; tested), so the database holds the same rows one process would write,
     where COLMAP's own threads change one or two pairs' matches in about one run in five (:data:`MATCH_THREADS`)."""
     if not pairs:
         return
@@ -153,34 +157,51 @@ def match_pairs(db: Path, work_dir: Path, pairs: list[tuple[str, str]], opts: Sf
     if workers == 1:
         match_pair_list(db, work_dir / f"pairs_{tag}.txt", pairs, opts)
         return
+    for stale in work_dir.glob(f"match_{tag}_*"):  # an interrupted run's copies
+        shutil.rmtree(stale, ignore_errors=True)
     parts = [work_dir / f"match_{tag}_{k}" for k in range(workers)]
-    procs = []
+    procs: list[subprocess.Popen] = []
     try:
-        for k, part in enumerate(parts):
-            procs.append(_start_worker(db, part, pairs[k::workers], opts))
-        for proc, part in zip(procs, parts):
-            if proc.wait() != 0:
-                lines = (part / "log.txt").read_text(errors="replace").strip().splitlines() or ["no message"]
-                raise PlantsplatError(f"{db}: a matching process failed ({lines[-1]}); see {part / 'log.txt'}")
+        procs.extend(_start_worker(db, part, pairs[k::workers], opts) for k, part in enumerate(parts))
+        _wait_workers(db, procs, parts)
+        for part in parts:
+            _gather_matches(db, part / "database.db")
     finally:
         for proc in procs:  # Ctrl-C or an error: no worker goes on matching
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
-    for part in parts:
-        _gather_matches(db, part / "database.db")
-        shutil.rmtree(part, ignore_errors=True)
+        for part in parts:  # the copies go; a failed worker's log stays
+            for f in part.glob("database.db*"):
+                f.unlink(missing_ok=True)
+            if not (part / "log.txt").is_file() or all(p.returncode == 0 for p in procs):
+                shutil.rmtree(part, ignore_errors=True)
+
+
+def _wait_workers(db: Path, procs: list[subprocess.Popen], parts: list[Path]) -> None:
+    """Wait for every matching process; the first that fails stops them all with a one-line error."""
+    while not all(p.poll() == 0 for p in procs):
+        for proc, part in zip(procs, parts):
+            if proc.poll() not in (None, 0):
+                lines = (part / "log.txt").read_text(errors="replace").strip().splitlines() or ["no message"]
+                raise PlantsplatError(f"{db}: a matching process ended with code {proc.returncode} ({lines[-1]}; "
+                                      f"see {part / 'log.txt'}); re-run with --poses.num-threads 1 to match in "
+                                      "this process")
+        time.sleep(WORKER_POLL_S)
 
 
 def _start_worker(db: Path, part: Path, pairs: list[tuple[str, str]], opts: SfmConfig) -> subprocess.Popen:
-    """A matching process for ``pairs`` on a copy of ``db`` in the fresh folder ``part`` (its output in ``log.txt``)."""
+    """A matching process for ``pairs`` on a copy of ``db`` in the fresh folder ``part`` (its output in ``log.txt``),
+    running this process's plantsplat (its folder first on the worker's path)."""
     _fresh(part)
     _copy_database(db, part / "database.db")
     (part / "pairs.txt").write_text("".join(f"{a} {b}\n" for a, b in pairs))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        x for x in (str(Path(plantsplat.__file__).resolve().parents[1]), os.environ.get("PYTHONPATH")) if x)}
     with open(part / "log.txt", "wb") as log_file:
         return subprocess.Popen([sys.executable, "-m", "plantsplat.poses.match_worker", str(part / "database.db"),
-                                 str(part / "pairs.txt"), json.dumps(dataclasses.asdict(opts))],
-                                stdin=subprocess.DEVNULL, stdout=log_file, stderr=subprocess.STDOUT)
+                                 str(part / "pairs.txt"), json.dumps(dataclasses.asdict(opts))], env=env,
+                                stdin=subprocess.DEVNULL, stdout=log_file, stderr=subprocess.STDOUT, cwd=part)
 
 
 def match_pair_list(db: Path, pair_file: Path, pairs: list[tuple[str, str]], opts: SfmConfig) -> None:

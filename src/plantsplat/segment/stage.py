@@ -46,6 +46,7 @@ from plantsplat.io import (
 )
 from plantsplat.log import get_logger, progress
 from plantsplat.markers import recorded_cube
+from plantsplat.resources import usable_cores
 from plantsplat.segment.config import SegmentConfig
 from plantsplat.segment.decide import DecideConfig
 from plantsplat.segment.frame import distortion_map, object_prior, refine, to_frame
@@ -117,28 +118,33 @@ def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool 
     parts: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     facts: dict[str, dict] = {}
     pending: deque = deque()  # (name, the cube's share, the prior's mask, the refined mask's future), in frame order
-    workers = os.cpu_count() or 1
+    workers = usable_cores()
     with ThreadPoolExecutor(max_workers=workers) as pool:  # GrabCut releases the GIL
-        for name in progress(names, "segment: masks from the 3D object"):
-            view = by_name.get(name)
-            if view is None:
-                facts[name] = {"confidence": None, "note": "no camera pose (not registered by the poses stage)"}
-                continue
-            plant, cube = (to_frame(p, maps) for p in object_prior(obj, view))  # rendered here: numba's threads
-            prior = np.maximum(plant, cube)
-            pending.append((name, cube > 0.5, prior > 0.5, pool.submit(_refined, ws, name, prior, cfg.refine_band_px)))
-            while len(pending) > 2 * workers:  # a few frames in flight, not all of them in memory
+        try:
+            for name in progress(names, "segment: masks from the 3D object"):
+                view = by_name.get(name)
+                if view is None:
+                    facts[name] = {"confidence": None, "note": "no camera pose (not registered by the poses stage)"}
+                    continue
+                plant, cube = (to_frame(p, maps) for p in object_prior(obj, view))  # rendered here: numba's threads
+                prior = np.maximum(plant, cube)
+                pending.append((name, cube > 0.5, prior > 0.5,
+                                pool.submit(_refined, ws, name, prior, cfg.refine_band_px, cfg.seed)))
+                while len(pending) > 2 * workers:  # a few frames in flight, not all of them in memory
+                    _finish_mask(pending.popleft(), parts, facts)
+            while pending:
                 _finish_mask(pending.popleft(), parts, facts)
-        while pending:
-            _finish_mask(pending.popleft(), parts, facts)
+        except BaseException:  # an error or Ctrl-C: the frames waiting are not refined
+            pool.shutdown(cancel_futures=True)
+            raise
     info = {"object": obj.info, "calibrated": obj.cube is not None, "sfm_points": int(len(points)),
             "timing": {"scene_model_s": round(t_model, 2)}}
     return parts, facts, info
 
 
-def _refined(ws: Workspace, name: str, prior: np.ndarray, band_px: int) -> np.ndarray:
+def _refined(ws: Workspace, name: str, prior: np.ndarray, band_px: int, seed: int) -> np.ndarray:
     """Frame ``name``'s mask: the prior's outline refined on the frame (:func:`plantsplat.segment.frame.refine`)."""
-    return refine(read_image(ws.images_dir / name), prior, band_px) if band_px > 0 else prior > 0.5
+    return refine(read_image(ws.images_dir / name), prior, band_px, seed=seed) if band_px > 0 else prior > 0.5
 
 
 def _finish_mask(item: tuple, parts: dict, facts: dict) -> None:

@@ -30,7 +30,6 @@ Usage:
 
 from __future__ import annotations
 
-import os
 import resource
 import time
 from contextlib import contextmanager
@@ -44,6 +43,7 @@ from plantsplat.errors import PlantsplatError
 from plantsplat.io import write_image_atomic, write_json_atomic
 from plantsplat.log import get_logger, progress
 from plantsplat.raster import resolve_backend
+from plantsplat.resources import usable_cores
 from plantsplat.segment.scores import mask_iou
 from plantsplat.segment.stored import segment_images
 from plantsplat.train import data as D
@@ -237,11 +237,11 @@ def evaluate_workspace(ws: Workspace, train_dir: Path | None = None, metrics_pat
 
 @contextmanager
 def scoring_threads():
-    """Torch on every core this process may use (``OMP_NUM_THREADS``, which ``plantsplat batch`` sets per worker, else
-    all) while the test views are scored: training leaves torch on one thread (``TrainConfig.threads``), and LPIPS's
-    and SSIM's convolutions over whole frames are the evaluation's main cost."""
+    """Torch on every core this process may use (:func:`plantsplat.resources.usable_cores`) while the test views are
+    scored: training leaves torch on one thread (``TrainConfig.threads``), and LPIPS's and SSIM's convolutions over
+    whole frames are the evaluation's main cost."""
     before = torch.get_num_threads()
-    torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS") or 0) or os.cpu_count() or 1)
+    torch.set_num_threads(usable_cores())
     try:
         yield
     finally:
