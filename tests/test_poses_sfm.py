@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -225,8 +226,9 @@ def test_matching_processes_write_what_one_process_writes(synth_run, tmp_path, m
     pairs = [tuple(line.split()) for line in (colmap / "pairs_main.txt").read_text().splitlines()][::6]
     monkeypatch.setattr(sfm, "MIN_PAIRS_PER_WORKER", 20)
     tables = {}
+    monkeypatch.chdir(tmp_path)  # relative paths, as `plantsplat run VIDEO --out ws/plant01` gives
     for n in (1, 2):
-        db = tmp_path / f"w{n}" / "database.db"
+        db = Path(f"w{n}") / "database.db"
         db.parent.mkdir()
         shutil.copy(colmap / "database.db", db)
         with sqlite3.connect(db) as c:

@@ -198,10 +198,11 @@ def _start_worker(db: Path, part: Path, pairs: list[tuple[str, str]], opts: SfmC
     (part / "pairs.txt").write_text("".join(f"{a} {b}\n" for a, b in pairs))
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(
         x for x in (str(Path(plantsplat.__file__).resolve().parents[1]), os.environ.get("PYTHONPATH")) if x)}
-    with open(part / "log.txt", "wb") as log_file:
-        return subprocess.Popen([sys.executable, "-m", "plantsplat.poses.match_worker", str(part / "database.db"),
-                                 str(part / "pairs.txt"), json.dumps(dataclasses.asdict(opts))], env=env,
-                                stdin=subprocess.DEVNULL, stdout=log_file, stderr=subprocess.STDOUT, cwd=part)
+    here = part.resolve()  # the worker runs in its folder (nothing of the caller's folder on its path)
+    with open(here / "log.txt", "wb") as log_file:
+        return subprocess.Popen([sys.executable, "-m", "plantsplat.poses.match_worker", str(here / "database.db"),
+                                 str(here / "pairs.txt"), json.dumps(dataclasses.asdict(opts))], env=env,
+                                stdin=subprocess.DEVNULL, stdout=log_file, stderr=subprocess.STDOUT, cwd=here)
 
 
 def match_pair_list(db: Path, pair_file: Path, pairs: list[tuple[str, str]], opts: SfmConfig) -> None:
