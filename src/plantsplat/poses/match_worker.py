@@ -16,9 +16,7 @@ from plantsplat.poses.sfm import SfmConfig, match_pair_list
 
 def main(argv: list[str]) -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    db, pair_file, options = Path(argv[0]), Path(argv[1]), SfmConfig(**json.loads(argv[2]))
-    pairs = [tuple(line.split()) for line in pair_file.read_text().splitlines() if line.strip()]
-    match_pair_list(db, pair_file, pairs, options)
+    match_pair_list(Path(argv[0]), Path(argv[1]), SfmConfig(**json.loads(argv[2])))
     return 0
 
 

@@ -153,9 +153,9 @@ def match_pairs(db: Path, work_dir: Path, pairs: list[tuple[str, str]], opts: Sf
     if not pairs:
         return
     workers = max(1, min(opts.num_threads, len(pairs) // MIN_PAIRS_PER_WORKER))
-    (work_dir / f"pairs_{tag}.txt").write_text("".join(f"{a} {b}\n" for a, b in pairs))  # what was matched
+    write_pairs(work_dir / f"pairs_{tag}.txt", pairs)  # what was matched
     if workers == 1:
-        match_pair_list(db, work_dir / f"pairs_{tag}.txt", pairs, opts)
+        match_pair_list(db, work_dir / f"pairs_{tag}.txt", opts)
         return
     for stale in work_dir.glob(f"match_{tag}_*"):  # an interrupted run's copies
         shutil.rmtree(stale, ignore_errors=True)
@@ -195,7 +195,7 @@ def _start_worker(db: Path, part: Path, pairs: list[tuple[str, str]], opts: SfmC
     running this process's plantsplat (its folder first on the worker's path)."""
     _fresh(part)
     _copy_database(db, part / "database.db")
-    (part / "pairs.txt").write_text("".join(f"{a} {b}\n" for a, b in pairs))
+    write_pairs(part / "pairs.txt", pairs)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(
         x for x in (str(Path(plantsplat.__file__).resolve().parents[1]), os.environ.get("PYTHONPATH")) if x)}
     here = part.resolve()  # the worker runs in its folder (nothing of the caller's folder on its path)
@@ -205,12 +205,16 @@ def _start_worker(db: Path, part: Path, pairs: list[tuple[str, str]], opts: SfmC
                                 stdin=subprocess.DEVNULL, stdout=log_file, stderr=subprocess.STDOUT, cwd=here)
 
 
-def match_pair_list(db: Path, pair_file: Path, pairs: list[tuple[str, str]], opts: SfmConfig) -> None:
-    """Match and verify ``pairs`` into ``db`` in this process, on :data:`MATCH_THREADS` threads (the list goes to
-    ``pair_file``, COLMAP's imported pairing)."""
+def write_pairs(path: Path, pairs: list[tuple[str, str]]) -> None:
+    """Image-name pairs, one per line: COLMAP's imported pairing list."""
+    path.write_text("".join(f"{a} {b}\n" for a, b in pairs))
+
+
+def match_pair_list(db: Path, pair_file: Path, opts: SfmConfig) -> None:
+    """Match and verify the pairs listed in ``pair_file`` (:func:`write_pairs`) into ``db`` in this process, on
+    :data:`MATCH_THREADS` threads."""
     import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
-    pair_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
     mopts, verif = _matching_options(opts)
     pairing = pycolmap.ImportedPairingOptions()
     pairing.match_list_path = str(pair_file)
