@@ -8,7 +8,12 @@ relative in the 2-norm (||g_cpu - g_ref|| / ||g_ref||) for every parameter.
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
+from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -539,3 +544,19 @@ def test_numba_sh_colours_match_torch_values_and_gradients(degree):
         sh_colors_cpu(2, means, campos, coeffs[:, :4])
     with pytest.raises(ValueError):
         sh_colors_cpu(4, means, campos, coeffs)
+
+
+@pytest.mark.slow
+def test_freshly_compiled_kernels_match_cached_ones_bit_for_bit(tmp_path):
+    """The first run after an install compiles the numba kernels; later runs load them from numba's cache. Both
+    must give the same images and gradients to the last bit, or the same capture gives other results on its
+    first run (see plantsplat.raster.numba_config)."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba_cache")}
+    script = Path(__file__).with_name("kernel_outputs.py")
+    for run in ("compiled", "cached"):
+        subprocess.run([sys.executable, str(script), str(tmp_path / f"{run}.npz")], env=env, check=True, timeout=900)
+    compiled, cached = np.load(tmp_path / "compiled.npz"), np.load(tmp_path / "cached.npz")
+    assert any((tmp_path / "numba_cache").rglob("*.nbc")), "the first process wrote no kernel cache"
+    assert sorted(compiled.files) == sorted(cached.files)
+    for name in compiled.files:
+        assert np.array_equal(compiled[name], cached[name]), name

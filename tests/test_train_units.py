@@ -218,15 +218,20 @@ def test_fused_loss_skips_windows_where_render_and_target_agree(case):
         out.append((float(loss), float(mse), c.grad.double(), al.grad.double()))
     (lf, mf, cf, af), (lr, mr, cr, ar) = out
     assert abs(lf - lr) < 1e-6 and abs(mf - mr) < 1e-6
-    for a, b in ((cf, cr), (af, ar)):
-        assert float((a - b).abs().max()) <= 1e-4 * float(b.abs().max()) + 1e-10, float((a - b).abs().max())
-        # no gradient the skipped windows would have given is lost: where the fused one is exactly zero, so is the
-        # float64 reference's (up to its rounding); a range one pixel short leaves ~1e-9 out at its edge
-        assert not bool((b[a == 0].abs() >= 1e-13).any())
-    # the windows computed are exactly those holding a pixel where render and target differ
     x, y, _, (_, rng), _ = S._run_fwd(color, alpha[..., 0].numpy().copy(), bg.numpy(), frame, True, ga)
     differs = (x.reshape(h, w, 3) != y.reshape(h, w, 3)).any(axis=2).astype(np.uint8)
-    windows = cv2.dilate(differs, np.ones((11, 11), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    box = np.ones((11, 11), np.uint8)
+    windows = cv2.dilate(differs, box, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    covered = torch.from_numpy(cv2.dilate(windows.astype(np.uint8), box, borderType=cv2.BORDER_CONSTANT,
+                                          borderValue=0) > 0)[..., None]  # pixels some computed window holds
+    for a, b in ((cf, cr), (af, ar)):
+        assert float((a - b).abs().max()) <= 1e-4 * float(b.abs().max()) + 1e-10, float((a - b).abs().max())
+        # no gradient the skipped windows would have given is lost: outside the computed windows the float64
+        # reference's gradient is zero too (up to its rounding). Inside them a float32 sum may cancel to exactly
+        # zero where the reference keeps ~1e-10: that is rounding, within the tolerance above.
+        assert not bool((b[(a == 0) & ~covered.expand_as(a)].abs() >= 1e-13).any())
+    # the windows computed are exactly those holding a pixel where render and target differ (a range one pixel
+    # short would leave ~1e-9 of gradient out at its edge)
     for i in range(h):
         cols = np.flatnonzero(windows[i])
         assert tuple(rng[i]) == ((cols[0], cols[-1] + 1) if len(cols) else (0, 0)), (i, rng[i])

@@ -47,7 +47,7 @@ from numba.core import cgutils as _cg
 from numba.extending import intrinsic
 from torch import Tensor
 
-import plantsplat.raster.numba_config  # noqa: F401  (numba's threading layer)
+from plantsplat.raster.numba_config import FASTMATH  # (also numba's threading layer)
 
 from . import RasterInputError
 
@@ -97,7 +97,7 @@ _ALPHA_MAX = _F32(0.999)
 _ALPHA_MIN = _F32(1.0 / 255.0)
 _T_EPS = _F32(1e-4)
 # fast-math without the no-NaN/no-Inf assumptions (inputs are validated, but be safe)
-_FM = {"reassoc", "contract", "arcp", "nsz", "afn"}
+_FM = set(FASTMATH)
 _NGRAD = 10  # per-intersection gradient: mean x, mean y, conic a, b, c, opacity, r, g, b, depth
 _LANES = 8  # pixel loops run over 8-column blocks (one AVX2 float32 vector); tile_size is a multiple
 _SIG_MAX = _F32(6.0)  # exp(-6) < 1/255: larger sigma can never give a visible alpha

@@ -18,7 +18,7 @@ from torch import Tensor
 import plantsplat.raster.numba_config  # noqa: F401  (numba's threading layer)
 
 _F32 = np.float32
-_FM = {"reassoc", "contract", "arcp", "nsz", "afn"}
+_FM = False  # strict IEEE: see plantsplat.raster.numba_config
 _ZERO = _F32(0.0)
 _HALF = _F32(0.5)
 _ONE = _F32(1.0)

@@ -29,7 +29,7 @@ import plantsplat.raster.numba_config  # noqa: F401  (numba's threading layer)
 from .projection import SH_C0, SH_C1, SH_C2, SH_C3
 
 _F32 = np.float32
-_FM = {"contract", "arcp", "nsz", "afn"}  # no reassociation: sums in the reference's order
+_FM = False  # strict IEEE (sums in the reference's order): see plantsplat.raster.numba_config
 _C0 = _F32(SH_C0)
 _C1 = _F32(SH_C1)
 _C2_0, _C2_1, _C2_2, _C2_3, _C2_4 = (_F32(c) for c in SH_C2)
