@@ -8,7 +8,9 @@ decided it (name, value, threshold, passed), the stages' times. Captures:
 - the foreign renders in ``../shared/datasets/foreign_renders/`` (their truth: height above the soil,
   widths and the rest over every plant vertex);
 - plantsplat's own synthetic captures of the given seeds (rendered into ``--cache``);
-- the demo (``plantsplat demo``), with ``--demo``.
+- the demo (``plantsplat demo``), with ``--demo``: on ``--demo-seeds`` (the README's capture, 2025, by default),
+  each run ``--repeat`` times from nothing in folders of their own; the verdict's ``demo`` part gives how many runs
+  exit 0 with height and widths within 3 % and how far the runs of one seed differ.
 
 The verdict the issue asks for is computed: every run whose height or a width is more than 10 %
 off must say ``failed``; no run with every one of them within 5 % may say ``failed``.
@@ -18,6 +20,7 @@ in ``--work``; ``--traits-only`` re-runs only the traits stage on them (to study
 
 Usage:
     .venv/bin/python benchmarks/bench_e2e.py [--seeds 81 82 83 84 85] [--foreign 101 102 103] [--demo]
+    .venv/bin/python benchmarks/bench_e2e.py --seeds --foreign --demo --demo-seeds 2025 31 32 --repeat 2
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from plantsplat.cli import main as cli
+from plantsplat.commands.demo import DEMO_SEED
 from plantsplat.io import read_json, write_json_atomic
 from plantsplat.poses.evaluate import cube_from_world
 from plantsplat.resources import machine_info
@@ -132,6 +136,39 @@ def verdict(rows: list[dict]) -> dict:
             "met": not silently_wrong and not wrongly_failed}
 
 
+def run_demo(seed: int, k: int, work: Path, traits_only: bool) -> dict:
+    """Run ``k`` of `plantsplat demo` on capture seed ``seed``, from nothing, in a folder of its own; its row."""
+    label = "demo" if seed == DEMO_SEED else f"demo_{seed}"
+    out = work / (label if k == 0 else f"{label}_run{k + 1}")
+    t0 = time.perf_counter()
+    code = 0 if traits_only else cli(["demo", "--out", str(out), "--capture-seed", str(seed)])
+    row = run_capture(label, out / "capture" / "video.mp4", out / "capture" / "ground_truth.json",
+                      out / "workspace", "traits" if traits_only else "read")
+    row.update(seed=seed, run=k + 1)
+    if not traits_only:
+        row.update(exit_code=code, wall_seconds=round(time.perf_counter() - t0, 1))
+    print(json.dumps({k: row.get(k) for k in ("capture", "run", "exit_code", "quality", "traits")}), flush=True)
+    return row
+
+
+def demo_verdict(rows: list[dict]) -> dict:
+    """Issue 40's demo condition: every run exits 0 with height and both widths within 3 % of the truth, and the runs
+    of one seed give traits within 0.5 % of each other (the largest difference, in % of the first run's value)."""
+    def ok(r):
+        errs = [r.get("traits", {}).get(k, {}).get("pct_error") for k in KEY_TRAITS]
+        return r["exit_code"] == 0 and all(e is not None and abs(e) <= 3 for e in errs)
+    spread = {}
+    for seed in sorted({r["seed"] for r in rows}):
+        runs = [r.get("traits", {}) for r in rows if r["seed"] == seed]
+        diffs = [abs(t.get(k, {}).get("estimate", np.nan) - runs[0].get(k, {}).get("estimate", np.nan))
+                 / abs(runs[0].get(k, {}).get("estimate", np.nan)) * 100 for t in runs[1:] for k in runs[0]
+                 if runs[0][k].get("estimate")]
+        spread[str(seed)] = round(float(max(diffs)), 4) if diffs else None
+    return {"runs": len(rows), "runs_exit0_within_3pct": sum(ok(r) for r in rows),
+            "max_trait_difference_pct_between_runs": spread,
+            "met": all(ok(r) for r in rows) and all(d is not None and d <= 0.5 for d in spread.values())}
+
+
 def main() -> int:
     from plantsplat.log import setup_logging
 
@@ -139,6 +176,8 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, nargs="*", default=[81, 82, 83, 84, 85])
     ap.add_argument("--foreign", nargs="*", default=["101", "102", "103", "104", "108", "110"])
     ap.add_argument("--demo", action="store_true", help="also run `plantsplat demo`")
+    ap.add_argument("--demo-seeds", type=int, nargs="*", default=[DEMO_SEED], help="capture seeds of the demo runs")
+    ap.add_argument("--repeat", type=int, default=1, help="run the demo this many times per seed, each from nothing")
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "plantsplat_bench_e2e_captures")
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "plantsplat_bench_e2e")
     ap.add_argument("--traits-only", action="store_true", help="re-run only the traits stage on kept workspaces")
@@ -166,18 +205,15 @@ def main() -> int:
         rows.append(run_capture(f"synth_{seed}", cap / "video.mp4", cap / "ground_truth.json",
                                 args.work / f"synth_{seed}", "traits" if args.traits_only else "run"))
         print(json.dumps({k: rows[-1].get(k) for k in ("capture", "exit_code", "quality", "traits")}), flush=True)
-    if args.demo:
-        out = args.work / "demo"
-        t0 = time.perf_counter()
-        code = 0 if args.traits_only else cli(["demo", "--out", str(out)])
-        row = run_capture("demo", out / "capture" / "video.mp4", out / "capture" / "ground_truth.json",
-                          out / "workspace", "traits" if args.traits_only else "read")
-        if not args.traits_only:
-            row.update(exit_code=code, wall_seconds=round(time.perf_counter() - t0, 1))
-        rows.append(row)
-        print(json.dumps({k: row.get(k) for k in ("capture", "exit_code", "quality", "traits")}), flush=True)
+    demo_rows = []
+    for seed in args.demo_seeds if args.demo else ():
+        for k in range(args.repeat):
+            demo_rows.append(run_demo(seed, k, args.work, args.traits_only))
+    rows += demo_rows
     v = verdict(rows)
     v["height"] = height_verdict(rows)
+    if args.demo:
+        v["demo"] = demo_verdict(demo_rows)
     info["loadavg_end"] = list(os.getloadavg())
     write_json_atomic(args.out, {"benchmark": "e2e", "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                                  "machine": info, "verdict": v, "runs": rows})
