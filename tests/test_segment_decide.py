@@ -6,6 +6,7 @@ import itertools
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from plantsplat.segment.decide import DecideConfig, body_gaps, decide_plant, min_cut_labels
 
@@ -73,9 +74,31 @@ def test_wall_patch_and_a_piece_by_the_cube_are_not_plant_and_white_flowers_are(
     plant, facts = decide_plant(mu, rgb, weight, candidate, rest, 45.0)
     assert plant[truth].mean() > 0.99 and not plant[candidate & ~truth].any(), facts
     assert plant[1800:1890].all()  # the white flowers, the colour of the room, stay with their leaves
-    position, _ = decide_plant(mu, rgb, weight, candidate, rest, 45.0, DecideConfig(enabled=True, max_colour_evidence=0.0,
-                                                                              gap_scale=1e9))
+    position, _ = decide_plant(mu, rgb, weight, candidate, rest, 45.0,
+                               cfg=DecideConfig(enabled=True, max_colour_evidence=0.0, gap_scale=1e9))
     assert position[candidate].all()  # without colour and attachment every candidate is plant
+
+
+def test_a_wall_patch_touching_a_leaf_does_not_teach_the_plant_its_colour():
+    """A blank wall patch the quick model hangs against a leaf's edge joins the plant's body. Learned from the whole
+    body, the plant's colours include the wall's and the patch stays plant; learned where structure from motion found
+    the body (no SfM point on a blank wall), the patch goes and the plant stays."""
+    rng = np.random.default_rng(3)
+    mu, rgb, weight, candidate, rest, truth = _scene(rng)  # (its own wall patch hangs apart from the body)
+    sheet = np.c_[rng.normal(11.0, 0.2, 400), rng.uniform(-4, 4, 400), rng.uniform(25.5, 37, 400)]
+    grey = np.clip(rng.normal(0.72, 0.04, (400, 1)) + rng.normal(0, 0.01, (400, 3)), 0, 1)
+    mu, rgb = np.concatenate([mu, sheet]), np.concatenate([rgb, grey])
+    weight, truth = np.ones(len(mu)), np.concatenate([truth, np.zeros(400, bool)])
+    candidate, rest = np.concatenate([candidate, np.ones(400, bool)]), np.concatenate([rest, np.zeros(400, bool)])
+    sheet_idx = np.arange(len(mu) - 400, len(mu))
+    textured = np.flatnonzero(truth)[::3]  # SfM points on the stem and leaves, none on the wall
+    sfm = mu[textured] + rng.normal(0, 0.1, (len(textured), 3))
+    sfm_distance = cKDTree(sfm).query(mu)[0]
+    whole, facts_whole = decide_plant(mu, rgb, weight, candidate, rest, 45.0)
+    taught, facts = decide_plant(mu, rgb, weight, candidate, rest, 45.0, sfm_distance)
+    gap, _ = body_gaps(mu[candidate], DecideConfig().attach_reach * 45.0)
+    assert (gap[-400:] == 0).all() and whole[sheet_idx].mean() > 0.5, facts_whole  # the patch joined the body
+    assert not taught[sheet_idx].any() and taught[truth].mean() > 0.99, facts
 
 
 def test_body_gaps_measure_pieces_from_the_largest():

@@ -6,9 +6,11 @@ cube). A quick model can still put things there that are not plant: a patch of a
 the wrong depth, a few Gaussians beside the cube. Three more kinds of evidence hold in any room:
 
 - **appearance**, learned per capture from what geometry is sure of: the colours of the plant's
-  body (below) against the colours of the rest of the scene (the far room, the floor, the pot, the
-  cube). Each candidate gets the log-likelihood ratio of its colour under the two
-  (:func:`colour_evidence`);
+  body (below) where structure from motion found it (an SfM point within one neighbour spacing:
+  texture seen from several frames), against the colours of the rest of the scene (the far room, the
+  floor, the pot, the cube). Each candidate gets the log-likelihood ratio of its colour under the two
+  (:func:`colour_evidence`). A patch of blank wall the quick model hangs against a leaf joins the body,
+  but SfM finds nothing on it, so it does not teach the plant's colours the wall's;
 - **attachment**: the plant is one body; the largest piece of candidates linked at a few centimetres
   is it (:func:`body_gaps`). A piece apart from it is less likely plant the farther it is:
   its prior falls with the square of the gap, measured against the body's size, so a leaf whose
@@ -20,7 +22,7 @@ the wrong depth, a few Gaussians beside the cube. Three more kinds of evidence h
   The labels are the minimum cut of that graph (:func:`min_cut_labels`, scipy's maximum flow).
 
 Usage:
-    plant, facts = decide_plant(mu, rgb, opacity, candidates, background, orbit_radius)
+    plant, facts = decide_plant(mu, rgb, opacity, candidates, background, orbit_radius, sfm_distance)
 """
 
 from __future__ import annotations
@@ -38,6 +40,8 @@ HISTOGRAM_FLOOR = 1e-3
 keeps a small likelihood under it."""
 BODY_SIZE_PERCENTILE = 95
 """The plant body's size: this percentile of its points' distances from their median (stray points aside)."""
+MIN_COLOUR_SAMPLES = 50
+"""The plant's colours are learned from its whole body where fewer of its Gaussians than this have an SfM point near."""
 
 
 @dataclass
@@ -61,6 +65,9 @@ class DecideConfig:
     """Neighbours of each candidate in the body graph."""
     smoothness: float = 1.5
     """Cost of cutting between two neighbours of the same colour at the typical neighbour distance."""
+    teach_reach: float = 1.0
+    """Only the body's Gaussians within this many typical neighbour distances of an SfM point teach the plant's colours
+    (0: the whole body)."""
     attach_reach: float = 0.07
     """Candidates within this share of the cameras' distance from the axis of each other are one piece (3 cm on a
     40 cm orbit); the largest piece is the plant's body."""
@@ -148,14 +155,26 @@ def body_gaps(mu: np.ndarray, link: float) -> tuple[np.ndarray, float]:
     return gap, size
 
 
+def colour_teachers(body: np.ndarray, sfm_distance: np.ndarray | None, reach: float) -> np.ndarray:
+    """The Gaussians of the plant's ``body`` (indices) that teach its colours: those within ``reach`` of an SfM point
+    (``sfm_distance`` ``[N]``), or the whole body where no distances are given or fewer than
+    :data:`MIN_COLOUR_SAMPLES` are that near."""
+    if sfm_distance is None or reach <= 0:
+        return body
+    near = body[sfm_distance[body] <= reach]
+    return near if len(near) >= MIN_COLOUR_SAMPLES else body
+
+
 def decide_plant(mu: np.ndarray, rgb: np.ndarray, weight: np.ndarray, candidate: np.ndarray,
-                 rest: np.ndarray, orbit_radius: float, cfg: DecideConfig | None = None) -> tuple[np.ndarray, dict]:
+                 rest: np.ndarray, orbit_radius: float, sfm_distance: np.ndarray | None = None,
+                 cfg: DecideConfig | None = None) -> tuple[np.ndarray, dict]:
     """The plant among the ``candidate`` Gaussians (``[N]`` bool): ``(plant [N] bool, facts)``.
 
     ``mu`` ``[N, 3]`` centres; ``rgb`` ``[N, 3]`` base colours in [0, 1]; ``weight`` ``[N]`` how much each counts in
     the colour models (its opacity); ``rest``: Gaussians surely not plant (the far room, the floor, the pot, the
-    cube); ``orbit_radius``: the cameras' distance from the axis (model units). The plant's colours are learned
-    from its body (:func:`body_gaps`), the rest's from ``rest``."""
+    cube); ``orbit_radius``: the cameras' distance from the axis (model units); ``sfm_distance`` ``[N]``: each
+    Gaussian's distance to the nearest SfM point (None: none known). The plant's colours are learned from its body
+    (:func:`body_gaps`) where SfM found it (:func:`colour_teachers`), the rest's from ``rest``."""
     cfg = cfg or DecideConfig()
     idx = np.flatnonzero(candidate)
     plant = np.zeros(len(mu), bool)
@@ -165,12 +184,13 @@ def decide_plant(mu: np.ndarray, rgb: np.ndarray, weight: np.ndarray, candidate:
     i, j, w, typical = neighbour_graph(mu[idx], rgb[idx], cfg.neighbours)
     gap, size = body_gaps(mu[idx], cfg.attach_reach * orbit_radius)
     body = idx[gap == 0]
-    llr = colour_evidence(rgb[idx], rgb[body], weight[body], rgb[rest], weight[rest], cfg)
+    teach = colour_teachers(body, sfm_distance, cfg.teach_reach * typical)
+    llr = colour_evidence(rgb[idx], rgb[teach], weight[teach], rgb[rest], weight[rest], cfg)
     prior = cfg.prior_log_odds - (gap / max(cfg.gap_scale * size, 1e-12)) ** 2
     keep = min_cut_labels(prior + llr, i, j, cfg.smoothness * w)
     plant[idx[keep]] = True
     facts = {"decided_by": "position, colour and neighbours", "candidates": int(len(idx)),
-             "apart_from_body": int((gap > 0).sum()), "dropped": int((~keep).sum()),
+             "apart_from_body": int((gap > 0).sum()), "colours_from": int(len(teach)), "dropped": int((~keep).sum()),
              "dropped_apart": int((~keep & (gap > 0)).sum()), "neighbour_cm": round(typical, 3),
              "body_size": round(size, 2)}
     return plant, facts

@@ -314,13 +314,15 @@ def pot_solid(grid: Grid, free: np.ndarray, seen: np.ndarray, axis_xy: np.ndarra
     return ndimage.binary_dilation(np.isin(labels, keep), _ball(r + 1))
 
 
-def _weigh_evidence(params: dict, mu: np.ndarray, candidate: np.ndarray, orbit_radius: float, cfg: DecideConfig):
+def _weigh_evidence(params: dict, mu: np.ndarray, candidate: np.ndarray, orbit_radius: float, cfg: DecideConfig,
+                    sfm_points: np.ndarray):
     """The candidates' colours and neighbours weighed (:func:`decide_plant`) against every opaque Gaussian that is no
-    candidate."""
+    candidate; the plant's colours learned where the SfM points ``[P, 3]`` are."""
     rgb = sh_to_rgb(params["sh0"][:, 0, :]).clamp(0, 1).numpy().astype(np.float64)
     opacity = torch.sigmoid(params["opacities"]).numpy().reshape(-1).astype(np.float64)
     opaque = opacity > cfg.sure_opacity
-    return decide_plant(mu, rgb, opacity, candidate, opaque & ~candidate, orbit_radius, cfg)
+    sfm_distance = cKDTree(sfm_points).query(mu)[0] if len(sfm_points) else None
+    return decide_plant(mu, rgb, opacity, candidate, opaque & ~candidate, orbit_radius, sfm_distance, cfg)
 
 
 def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: np.ndarray, reach: float = 0.55,
@@ -368,6 +370,6 @@ def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: n
     plant[idx] = in_view_share(mu[idx], views) >= min_in_view
     decide = decide or DecideConfig()
     if decide.enabled:
-        plant, info["decision"] = _weigh_evidence(params, mu, plant, cam_radial, decide)
+        plant, info["decision"] = _weigh_evidence(params, mu, plant, cam_radial, decide, sfm_points)
     info["plant_gaussians"] = int(plant.sum())
     return ObjectModel(params=params, plant=plant, cube=cube, axis=centre, up=up, info=info)
