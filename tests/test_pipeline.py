@@ -114,8 +114,9 @@ def test_changed_option_trains_again(finished_run, tmp_path):
 
 
 def test_frames_without_a_plant_are_not_trained_on(finished_run, tmp_path):
-    """Frames segment.json lists as excluded are left out of training (issue 34, case 6)."""
-    from plantsplat.train.data import load_scene
+    """Frames segment.json lists as excluded are left out of an object model's training (issue 34, case 6), not out of
+    a whole-scene model's."""
+    from plantsplat.train.data import load_scene, training_scene
     from plantsplat.workspace import Workspace
 
     _, ws0, _ = finished_run
@@ -127,6 +128,9 @@ def test_frames_without_a_plant_are_not_trained_on(finished_run, tmp_path):
     ws.segment_json.write_text(json.dumps(seg))
     names = [v.name for v in load_scene(ws, need_masks=True, load_images=False, skip_excluded=True).views]
     assert not set(gone) & set(names) and len(names) == len(ws.image_names()) - 2
+    assert [v.name for v in training_scene(ws, "object").views] == names
+    # a whole-scene model (the segment stage's quick model) trains on every frame, whatever an earlier run excluded
+    assert set(gone) <= {v.name for v in training_scene(ws, "full").views}
 
 
 def test_evaluate_command_against_csv(finished_run, tmp_path):

@@ -141,6 +141,14 @@ def excluded_frames(ws: Workspace) -> dict[str, str]:
     return {e["name"]: e.get("reason", "") for e in read_json(ws.segment_json).get("excluded", [])}
 
 
+def training_scene(ws: Workspace, mode: str) -> Scene:
+    """The frames a model of ``mode`` ("object" or "full") trains on. An object model leaves out the frames the segment
+    stage found no plant in; a whole-scene model keeps every posed frame: the segment stage's quick model is one, and
+    trains before ``segment.json`` is rewritten, so it must not depend on an earlier run's masks (a forced re-run of
+    the segment stage trains the same quick model as its first run)."""
+    return load_scene(ws, need_masks=mode == "object", skip_excluded=mode == "object")
+
+
 def load_scene(ws: Workspace, need_masks: bool, load_images: bool = True, skip_excluded: bool = False) -> Scene:
     """Cameras, undistorted images and masks, and SfM points of a workspace.
 

@@ -153,7 +153,7 @@ def _publish(paths: dict, final: dict, metrics: bool) -> None:
 
 
 def _setup(ws: Workspace, cfg: TrainConfig, rc: ResolvedConfig, paths: dict) -> _Setup:
-    scene = D.load_scene(ws, need_masks=rc.mode == "object", skip_excluded=True)
+    scene = D.training_scene(ws, rc.mode)
     split = D.load_or_make_split(paths["split"], [v.name for v in scene.views], cfg.test_fraction, cfg.test_every)
     train_views = [v for v in scene.views if v.name in set(split["train"])]
     if not train_views:
