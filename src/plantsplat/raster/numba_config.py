@@ -6,9 +6,9 @@
   an add into one FMA): a kernel numba compiles in the running process and the same kernel loaded from its cache
   were measured to fuse differently, so the first run after an install or an upgrade gave other images and
   gradients (1e-7 apart, then a different quick model and different masks) than every later run. The
-  projection and SH kernels, where the remaining flags also changed results between the two, are compiled
-  without fast math (they cost little). ``tests/test_raster.py`` checks that a freshly compiled kernel and a
-  cached one agree bit for bit.
+  projection kernels, where the remaining flags changed results between the two as well, and the SH kernels are
+  compiled without fast math (they cost little: a training step is about 2 % slower). ``tests/test_raster.py``
+  checks that a freshly compiled kernel and a cached one agree bit for bit.
 
 Each kernel module imports this module. numba notices a change to a kernel's own file only: after changing these
 settings, touch the kernel modules (or clear their caches).
