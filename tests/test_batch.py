@@ -44,6 +44,24 @@ def test_manifest_without_columns(tmp_path):
         read_manifest(p)
 
 
+def test_each_plant_runs_in_a_process_of_its_own(tmp_path, monkeypatch):
+    """A process that has run one plant carries state into the next: every plant gets a fresh worker process, with one
+    worker as with several."""
+    import plantsplat.batch as B
+
+    made = []
+
+    class Recording(B.ProcessPoolExecutor):
+        def __init__(self, *args, **kwargs):
+            made.append(kwargs)
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(B, "ProcessPoolExecutor", Recording)
+    (tmp_path / "p1").mkdir()
+    run_batch(_manifest(tmp_path, [("p1", "p1")]), tmp_path / "out", BatchConfig(workers=1))
+    assert made and all(k.get("max_tasks_per_child") == 1 for k in made)
+
+
 def test_failing_plant_does_not_stop_others_and_exit_code(tmp_path):
     # two plants whose input folders hold no images: both fail in the frames stage, each with its reason;
     # a missing file is skipped with its reason; the batch still writes its tables.
