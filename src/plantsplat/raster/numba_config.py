@@ -7,7 +7,7 @@
   were measured to fuse differently, so the first run after an install or an upgrade gave other images and
   gradients (1e-7 apart, then a different quick model and different masks) than every later run. The
   projection kernels, where the remaining flags changed results between the two as well, and the SH kernels are
-  compiled without fast math (they cost little: a training step is about 2 % slower). ``tests/test_raster.py``
+  compiled without fast math (they cost little: a training step is 2-4 % slower). ``tests/test_raster.py``
   checks that a freshly compiled kernel and a cached one agree bit for bit.
 
 Each kernel module imports this module. numba notices a change to a kernel's own file only: after changing these
