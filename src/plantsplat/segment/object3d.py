@@ -315,13 +315,13 @@ def pot_solid(grid: Grid, free: np.ndarray, seen: np.ndarray, axis_xy: np.ndarra
 
 
 def _weigh_evidence(params: dict, mu: np.ndarray, candidate: np.ndarray, orbit_radius: float, cfg: DecideConfig,
-                    sfm_points: np.ndarray):
+                    sfm_distance: np.ndarray | None):
     """The candidates' colours and neighbours weighed (:func:`decide_plant`) against every opaque Gaussian that is no
-    candidate; the plant's colours learned where the SfM points ``[P, 3]`` are."""
+    candidate; the plant's colours learned near the SfM points (``sfm_distance`` ``[N]``: each Gaussian's distance to
+    the nearest; None: no points)."""
     rgb = sh_to_rgb(params["sh0"][:, 0, :]).clamp(0, 1).numpy().astype(np.float64)
     opacity = torch.sigmoid(params["opacities"]).numpy().reshape(-1).astype(np.float64)
     opaque = opacity > cfg.sure_opacity
-    sfm_distance = cKDTree(sfm_points).query(mu)[0] if len(sfm_points) else None
     return decide_plant(mu, rgb, opacity, candidate, opaque & ~candidate, orbit_radius, sfm_distance, cfg)
 
 
@@ -355,8 +355,9 @@ def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: n
     cam_radial = float(np.median(np.linalg.norm(cams - np.outer(cams @ up, up), axis=1)))
     region = radial < reach * cam_radial
     info: dict = {"axis": np.round(centre, 3).tolist(), "reach": round(reach * cam_radial, 3)}
-    if len(sfm_points):
-        region &= cKDTree(sfm_points).query(mu, distance_upper_bound=sfm_reach * cam_radial)[0] < np.inf
+    sfm_distance = cKDTree(sfm_points).query(mu)[0] if len(sfm_points) else None  # [N]
+    if sfm_distance is not None:
+        region &= sfm_distance < sfm_reach * cam_radial
     if cube is not None:
         region &= mu[:, 2] > ground_cm
         region &= ~in_cube_box(mu, cube.size, 0.5)
@@ -370,6 +371,6 @@ def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: n
     plant[idx] = in_view_share(mu[idx], views) >= min_in_view
     decide = decide or DecideConfig()
     if decide.enabled:
-        plant, info["decision"] = _weigh_evidence(params, mu, plant, cam_radial, decide, sfm_points)
+        plant, info["decision"] = _weigh_evidence(params, mu, plant, cam_radial, decide, sfm_distance)
     info["plant_gaussians"] = int(plant.sum())
     return ObjectModel(params=params, plant=plant, cube=cube, axis=centre, up=up, info=info)
