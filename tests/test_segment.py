@@ -127,6 +127,22 @@ def test_soil_hidden_leaves_the_crown_or_filled_to_the_rim():
     assert full is not None and abs(full.soil_z - 11.75) <= 0.5
 
 
+def test_soil_drawn_by_a_few_wide_gaussians_is_found_by_their_footprints():
+    """Issue 41. A quick model draws an even soil with a few wide, flat Gaussians: their centres alone cover too little
+    of the disc inside the rim, their footprints (one standard deviation) cover it."""
+    rng = np.random.default_rng(5)
+    centre, axis = np.array([25.0, 10.0]), np.array([25.3, 9.8])
+    body = np.concatenate([_without_soil(pot_points(rng, soil=9.5), 9.5), plant_points(rng)])
+    a, r = np.linspace(0, 2 * np.pi, 9)[:-1], 4.0
+    soil = np.concatenate([[[*centre, 9.5]], np.stack([centre[0] + r * np.cos(a), centre[1] + r * np.sin(a),
+                                                       np.full(8, 9.5)], 1)])  # 9 flat discs of 2.2 cm
+    points = np.concatenate([body, soil])
+    spread = np.concatenate([np.tile(np.eye(2) * 0.01, (len(body), 1, 1)), np.tile(np.eye(2) * 2.2 ** 2, (9, 1, 1))])
+    assert not find_pot(points, axis).soil_seen
+    pot = find_pot(points, axis, spread=spread)
+    assert pot.soil_seen and abs(pot.soil_z - 9.5) <= 0.5
+
+
 def test_no_pot_without_rings():
     rng = np.random.default_rng(1)
     assert find_pot(plant_points(rng), np.array([25.0, 10.0])) is None

@@ -36,6 +36,7 @@ from plantsplat.cube import CubeSpec, in_cube_box
 from plantsplat.log import get_logger
 from plantsplat.poses.checks import orbit_centre
 from plantsplat.raster import rasterize
+from plantsplat.raster.projection import quat_scale_to_covar
 from plantsplat.segment.decide import DecideConfig, decide_plant
 from plantsplat.train.model import sh_to_rgb
 
@@ -108,6 +109,13 @@ def render_values(params: dict, values: torch.Tensor, view, scale: float = 1.0, 
         out = rasterize(mu, q, torch.exp(s), torch.sigmoid(o).reshape(-1), values,
                         torch.tensor(view.viewmat, dtype=torch.float32), _scaled_K(view, scale), w, h, backend="cpu")
     return out.color.numpy(), out.alpha.reshape(h, w).numpy()
+
+
+def horizontal_spread(params: dict) -> np.ndarray:
+    """Each Gaussian's covariance in the ground plane (the x-y block of its 3D covariance): ``[N, 2, 2]``."""
+    with torch.no_grad():
+        cov = quat_scale_to_covar(params["quats"], torch.exp(params["scales"]))  # [N, 3, 3]
+    return cov[:, :2, :2].numpy().astype(np.float64)
 
 
 def depth_map(params: dict, view, scale: float) -> tuple[np.ndarray, np.ndarray]:
@@ -196,20 +204,25 @@ def ring(xy: np.ndarray, axis_xy: np.ndarray, rng: np.random.Generator, band: fl
 
 POT_SLAB_CM = 0.5
 """Thickness of the horizontal slabs the pot (and its soil) is looked for in: the soil's height is known to it."""
+FOOTPRINT_FLOOR_CM2 = 1e-6
+"""Added to a footprint's covariance (cm²) so that a needle-thin Gaussian's can be inverted."""
 
 
 def find_pot(points: np.ndarray, axis_xy: np.ndarray, slab: float = POT_SLAB_CM, reach: float = 16.0,
-             min_sectors: int = 14, seed: int = 0, window: float = 1.5, wall_offset_cm: float = 1.5) -> Pot | None:
+             min_sectors: int = 14, seed: int = 0, window: float = 1.5, wall_offset_cm: float = 1.5,
+             spread: np.ndarray | None = None) -> Pot | None:
     """The pot standing on the ground around the axis, from the model's Gaussians ``points [N, 3]`` (cube frame).
 
     Each horizontal slab (``slab`` cm, from the ground up; its points within ``window`` slabs of its height) is
     searched for a ring around the axis (:func:`ring`); the rim is the strongest ring seen all around (at least
     ``min_sectors`` of 16 directions), its top the highest slab above it that still holds that ring. The wall below follows
     the rings found there whose centre lies within ``wall_offset_cm`` of the rim's (a pot widens or narrows
-    evenly). None when no ring is strong enough.
+    evenly). None when no ring is strong enough. ``spread`` ``[N, 2, 2]``: each point's horizontal covariance (a
+    Gaussian's footprint, for the soil's cover: :func:`soil_top_in_pot`); None for points without extent.
     """
     rng = np.random.default_rng(seed)
-    near = points[np.linalg.norm(points[:, :2] - axis_xy, axis=1) < reach]
+    close = np.linalg.norm(points[:, :2] - axis_xy, axis=1) < reach
+    near = points[close]
     rings = []
     for z in np.arange(slab, near[:, 2].max(initial=0.0), slab):
         found = ring(near[np.abs(near[:, 2] - z) < window * slab][:, :2], axis_xy, rng)
@@ -227,28 +240,51 @@ def find_pot(points: np.ndarray, axis_xy: np.ndarray, slab: float = POT_SLAB_CM,
             if z < z_rim and np.linalg.norm(c - centre) < wall_offset_cm and r <= r_rim + 1.0]
     heights = np.array([0.0] + [z for z, _ in wall] + [z_rim])
     radii = np.array([wall[0][1] if wall else r_rim] + [r for _, r in wall] + [r_rim])
-    return Pot(centre=np.asarray(centre), rim_z=float(z_rim), soil_z=soil_top_in_pot(near, centre, r_rim, z_rim, slab),
+    return Pot(centre=np.asarray(centre), rim_z=float(z_rim), soil_z=soil_top_in_pot(near, centre, r_rim, z_rim, slab,
+                                                                  spread=None if spread is None else spread[close]),
                heights=heights, radii=np.maximum.accumulate(radii))
 
 
 def soil_top_in_pot(points: np.ndarray, centre: np.ndarray, r_rim: float, z_rim: float, slab: float,
-                    depth: float = 6.0, cover: float = 0.5, inner: float = 0.8, rings: int = 8, sectors: int = 16
-                    ) -> float:
+                    depth: float = 6.0, cover: float = 0.5, inner: float = 0.8, rings: int = 8, sectors: int = 16,
+                    spread: np.ndarray | None = None) -> float:
     """The top of the soil in a pot: the highest slab below the rim whose Gaussians cover at least ``cover`` of the
     disc inside the rim (``inner`` of its radius, in ``rings`` rings of equal area x ``sectors`` directions); the
     rim when none does. The crown and the petioles' feet above the soil are near the axis and do not cover the
-    disc."""
+    disc. A cell is covered when a point of the slab lies in it or, with ``spread`` (``[N, 2, 2]`` horizontal
+    covariances), when its centre lies within one standard deviation of a point's footprint: a quick model draws
+    an even soil with a few wide, flat Gaussians, whose centres alone leave most cells empty."""
     rin = inner * r_rim
     d = np.linalg.norm(points[:, :2] - centre, axis=1)
     az = np.arctan2(points[:, 1] - centre[1], points[:, 0] - centre[0])
+    cell_xy = _disc_cells(centre, rin, rings, sectors)  # [rings * sectors, 2]
     for z in np.arange(z_rim, z_rim - depth, -slab):
-        s = (np.abs(points[:, 2] - z) < slab) & (d < rin)
+        s = np.abs(points[:, 2] - z) < slab
+        inside = s & (d < rin)
         cells = np.zeros((rings, sectors), bool)
-        cells[np.minimum((d[s] / rin) ** 2 * rings, rings - 1).astype(int),
-              np.floor((az[s] + np.pi) / (2 * np.pi) * sectors).astype(int) % sectors] = True
+        cells[np.minimum((d[inside] / rin) ** 2 * rings, rings - 1).astype(int),
+              np.floor((az[inside] + np.pi) / (2 * np.pi) * sectors).astype(int) % sectors] = True
+        if spread is not None and s.any():
+            cells |= _within_footprints(cell_xy, points[s, :2], spread[s]).reshape(rings, sectors)
         if cells.mean() >= cover:
             return float(z)
     return float(z_rim)
+
+
+def _disc_cells(centre: np.ndarray, radius: float, rings: int, sectors: int) -> np.ndarray:
+    """Centres ``[rings * sectors, 2]`` of a disc's cells (rings of equal area x sectors, row-major by ring), in the
+    order :func:`soil_top_in_pot` indexes them."""
+    r = radius * np.sqrt((np.arange(rings) + 0.5) / rings)
+    a = (np.arange(sectors) + 0.5) / sectors * 2 * np.pi - np.pi
+    return centre + np.stack([np.outer(r, np.cos(a)), np.outer(r, np.sin(a))], -1).reshape(-1, 2)
+
+
+def _within_footprints(xy: np.ndarray, mu: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Whether each point ``xy`` ``[C, 2]`` lies within one standard deviation of any footprint (centres ``mu``
+    ``[G, 2]``, covariances ``cov`` ``[G, 2, 2]``). ``[C]`` bool"""
+    inv = np.linalg.inv(cov + FOOTPRINT_FLOOR_CM2 * np.eye(2))  # [G, 2, 2]
+    d = xy[:, None, :] - mu[None, :, :]  # [C, G, 2]
+    return (np.einsum("cgi,gij,cgj->cg", d, inv, d) <= 1.0).any(axis=1)
 
 
 @dataclass
@@ -362,7 +398,7 @@ def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: n
         region &= mu[:, 2] > ground_cm
         region &= ~in_cube_box(mu, cube.size, 0.5)
         solid = torch.sigmoid(params["opacities"]).numpy().reshape(-1) > opaque
-        pot = find_pot(mu[solid], centre[:2], seed=seed)
+        pot = find_pot(mu[solid], centre[:2], seed=seed, spread=horizontal_spread(params)[solid])
         if pot is not None:
             region &= ~pot.contains(mu, pot_margin_cm)
             info["pot"] = pot.summary()
