@@ -156,6 +156,10 @@ def make_synthetic_workspace(
     if "segment" in stages:
         for i, name in enumerate(names):
             write_image_atomic(ws.masks_dir / name, frame(i)[1])
+        write_image_atomic(ws.masks_preview_png, frame(0)[0])  # stand-ins: the report shows the figures it finds
+        write_image_atomic(ws.segment_decision_png, frame(1)[0])
+        write_json_atomic(ws.segment_json, {"backend": "3d", "confidence": {"mean": 0.91, "min": 0.83,
+                                                                             "least_sure": names[0]}})
     if "poses" in stages:
         f = 0.9 * w
         frames = [{"file_path": f"images/{n}", "transform_matrix": m.tolist()}

@@ -99,9 +99,10 @@ def test_full_report_has_every_section(full_ws):
     path = write_report(full_ws)
     text = path.read_text()
     assert path == full_ws / "report.html"
-    for sec in ("summary", "traits", "viewer", "renders", "metrics", "frames", "cameras", "runtimes"):
+    for sec in ("summary", "traits", "viewer", "renders", "metrics", "frames", "segmentation", "cameras", "runtimes"):
         assert f'<section id="{sec}">' in text
     assert "Missing:" not in text
+    assert 'alt="3D decision"' in text and 'alt="least sure masks"' in text and "least 0.83" in text
     assert "PlantsplatViewerLib" in text and "http://" not in text.split("<script")[0]
     # no external resources: every src= is a data: URI and there is no <script src>
     assert not re.search(r'<script[^>]+src=', text)

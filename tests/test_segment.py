@@ -17,14 +17,17 @@ from plantsplat.io import read_image, read_json
 from plantsplat.pipeline import segment_stage
 from plantsplat.segment import stage as segmentation
 from plantsplat.segment.config import SegmentConfig
+from plantsplat.segment.decision_figure import decision_figure
 from plantsplat.segment.frame import object_prior, refine
 from plantsplat.segment.object3d import (
+    PART_NAMES,
     ObjectModel,
     find_pot,
     in_view_share,
     object_model,
 )
 from plantsplat.segment.scores import mask_iou
+from plantsplat.segment.stored import OBJECT_FILE, SCENE_DIR, save_object
 from plantsplat.train.data import View
 from plantsplat.workspace import Workspace
 
@@ -149,7 +152,7 @@ def test_no_pot_without_rings():
 
 
 # ------------------------------------------------------------------ which Gaussians are plant
-def test_object_model_keeps_the_plant_and_leaves_out_pot_cube_room_and_floaters():
+def test_object_model_keeps_the_plant_and_leaves_out_pot_cube_room_and_floaters(tmp_path):
     rng = np.random.default_rng(2)
     pot, plant = pot_points(rng), plant_points(rng)
     cube = rng.uniform([-4.5, -4.5, 0.5], [4.5, 4.5, 9.5], (400, 3))
@@ -164,6 +167,24 @@ def test_object_model_keeps_the_plant_and_leaves_out_pot_cube_room_and_floaters(
     for k in (0, 2, 3, 4):
         assert obj.plant[kind == k].mean() < 0.02, k
     assert obj.info["pot"]["rim_z_cm"] == pytest.approx(12.0, abs=0.75)
+    called = {name: np.bincount(obj.part[kind == k], minlength=len(PART_NAMES)).argmax()
+              for k, name in enumerate(("pot", "plant", "cube", "room", "room"))}
+    assert {name: PART_NAMES[v] for name, v in called.items()} == {n: n for n in called}
+    assert (obj.part == PART_NAMES.index("plant")).sum() == obj.plant.sum()
+    decision_figure(obj, tmp_path / "decision.png")  # the report's picture of it
+    img = cv2.imread(str(tmp_path / "decision.png"))
+    assert img is not None and img.shape[1] > 800
+
+
+def test_decided_parts_are_kept_with_the_object(tmp_path):
+    obj = ObjectModel(params=gaussians(np.zeros((3, 3))), plant=np.array([True, False, False]), cube=CubeSpec(),
+                      axis=np.array([0.0, 0.0, 5.0]), up=np.array([0, 0, 1.0]), info={"reach": 25.0},
+                      part=np.array([1, 4, 0], np.int8))
+    ws = Workspace(tmp_path / "ws")
+    (ws.root / SCENE_DIR).mkdir(parents=True)
+    save_object(ws, obj)
+    data = np.load(ws.root / OBJECT_FILE)
+    assert data["part"].tolist() == [1, 4, 0] and data["plant"].tolist() == [True, False, False]
 
 
 def test_in_view_share():

@@ -13,7 +13,7 @@ Layout (every stage reads and writes only these paths; see the README's "Outputs
       sparse_points.ply           SfM points (cm, z up)                          (poses)
       masks/frame_00000.png       uint8 mask, 255 = plant or cube               (segment)
       rgba/frame_00000.png        RGBA image, alpha = mask                      (segment)
-      segment.json, masks_preview.png                                           (segment)
+      segment.json, masks_preview.png, segment_decision.png                     (segment)
       train/                      split.json, checkpoints, config               (train)
       export/splat.ply            Inria-layout 3DGS PLY                          (export)
       export/points.ply           opacity-filtered centres with colours         (export)
@@ -71,6 +71,16 @@ class Workspace:
     @property
     def segment_json(self) -> Path:
         return self.root / "segment.json"
+
+    @property
+    def masks_preview_png(self) -> Path:
+        """The segment stage's contact sheet of masks, least sure frames first."""
+        return self.root / "masks_preview.png"
+
+    @property
+    def segment_decision_png(self) -> Path:
+        """The segment stage's figure of its 3D decision (:mod:`plantsplat.segment.decision_figure`)."""
+        return self.root / "segment_decision.png"
 
     # poses
     @property

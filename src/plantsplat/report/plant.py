@@ -231,9 +231,9 @@ def _frames_section(ws: Workspace, parts: _Parts, opts: ReportConfig) -> str:
             body.append(parts.miss("masks (masks/)", _cmd("segment", ws)))
         else:
             parts.have("masks")
-    elif (ws.root / "masks_preview.png").is_file():
+    elif ws.masks_preview_png.is_file():
         body.append(parts.miss("frames (images/)", f"run `plantsplat frames VIDEO --out {ws.root}`"))
-        body.append(H.img_tag((ws.root / "masks_preview.png").read_bytes(), "image/png", "masks preview", cls="figure"))
+        body.append(H.img_tag(ws.masks_preview_png.read_bytes(), "image/png", "masks preview", cls="figure"))
     else:
         body.append(parts.miss("frames (images/)", f"run `plantsplat frames VIDEO --out {ws.root}`"))
     if ws.frames_json.is_file():
@@ -244,6 +244,27 @@ def _frames_section(ws: Workspace, parts: _Parts, opts: ReportConfig) -> str:
                 info["frames listed"] = len(fj["frames"])
             if info:
                 body.append("<h4>frames.json</h4>" + H.kv_table(info))
+    return "".join(body)
+
+
+def _segmentation_section(ws: Workspace, parts: _Parts) -> str:
+    """The segment stage's 3D decision (``segment_decision.png``) and its contact sheet, least sure frames first."""
+    decision, sheet = ws.segment_decision_png, ws.masks_preview_png
+    if not decision.is_file() and not sheet.is_file():
+        return parts.miss("segmentation figures (segment_decision.png, masks_preview.png)", _cmd("segment", ws))
+    body = []
+    if decision.is_file():
+        body.append('<p class="muted">Every opaque Gaussian of the quick scene model near the orbit\'s axis, by what the '
+                    "segment stage called it. Red: candidates the evidence set aside. Anything of the room drawn in "
+                    "green was taken for plant: correct it with <code>--segment.import-masks</code>.</p>")
+        body.append(H.img_tag(decision.read_bytes(), "image/png", "3D decision", cls="figure"))
+        parts.have("3D decision")
+    if sheet.is_file():
+        conf = (read_json(ws.segment_json).get("confidence") or {}) if ws.segment_json.is_file() else {}
+        sure = f" (mean {conf['mean']:.2f}, least {conf['min']:.2f})" if "mean" in conf and "min" in conf else ""
+        body.append(f'<p class="muted">Masks: the frames the segmenter is least sure of first{H.esc(sure)}, then '
+                    "frames spread over the capture.</p>")
+        body.append(H.img_tag(sheet.read_bytes(), "image/png", "least sure masks", cls="figure"))
     return "".join(body)
 
 
@@ -318,6 +339,7 @@ def build_report_html(ws: Workspace, opts: ReportConfig | None = None) -> tuple[
         ("renders", "Test views: renders next to ground truth", lambda: _renders_section(ws, parts, opts)),
         ("metrics", "Image metrics", lambda: _metrics_section(ws, parts)),
         ("frames", "Frames and masks", lambda: _frames_section(ws, parts, opts)),
+        ("segmentation", "The plant found in 3D, and the least sure masks", lambda: _segmentation_section(ws, parts)),
         ("cameras", "Camera path", lambda: _cameras_section(ws, parts)),
         ("runtimes", "Run times per stage", lambda: _runtimes_section(ws, parts)),
     ]

@@ -43,6 +43,7 @@ class SegmentConfig:
     max_excluded: float = 0.5
     """Fail (writing nothing) when more than this share of the frames has no plant."""
     preview: bool = True
-    """Write masks_preview.png (every frame's mask over it, with the segmenter's confidence)."""
+    """Write masks_preview.png (masks over their frames, least sure first, with the segmenter's confidence) and, for the
+    3d backend, segment_decision.png (the 3D decision)."""
     seed: int = 0
     """Random seed of the quick model."""

@@ -53,6 +53,12 @@ class ObjectModel:
     axis: np.ndarray  # [2] xy of the vertical axis the cameras circle (or [3] point + up in the model frame)
     up: np.ndarray  # [3] the world's up
     info: dict = field(default_factory=dict)
+    part: np.ndarray | None = None  # [N] int8: what each Gaussian was decided to be (:data:`PART_NAMES`)
+
+
+PART_NAMES = ("room", "plant", "pot", "cube", "set aside")
+"""What :func:`object_model` calls each Gaussian (``ObjectModel.part`` indexes this): the room; the plant; the pot and
+its soil; the calibration cube; a candidate in the plant's region that the evidence set aside (not plant)."""
 
 
 def orbit_axis(c2ws: list[np.ndarray]) -> np.ndarray:
@@ -394,19 +400,27 @@ def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: n
     sfm_distance = cKDTree(sfm_points).query(mu)[0] if len(sfm_points) else None  # [N]
     if sfm_distance is not None:
         region &= sfm_distance < sfm_reach * cam_radial
+    part = np.zeros(len(mu), np.int8)
     if cube is not None:
         region &= mu[:, 2] > ground_cm
-        region &= ~in_cube_box(mu, cube.size, 0.5)
+        in_cube = in_cube_box(mu, cube.size, 0.5)
+        region &= ~in_cube
+        part[in_cube] = PART_NAMES.index("cube")
         solid = torch.sigmoid(params["opacities"]).numpy().reshape(-1) > opaque
         pot = find_pot(mu[solid], centre[:2], seed=seed, spread=horizontal_spread(params)[solid])
         if pot is not None:
-            region &= ~pot.contains(mu, pot_margin_cm)
+            in_pot = pot.contains(mu, pot_margin_cm)
+            region &= ~in_pot
+            part[in_pot] = PART_NAMES.index("pot")
             info["pot"] = pot.summary()
-    plant = np.zeros(len(mu), bool)
+    candidate = np.zeros(len(mu), bool)
     idx = np.flatnonzero(region)
-    plant[idx] = in_view_share(mu[idx], views) >= min_in_view
+    candidate[idx] = in_view_share(mu[idx], views) >= min_in_view
+    plant = candidate
     decide = decide or DecideConfig()
     if decide.enabled:
-        plant, info["decision"] = _weigh_evidence(params, mu, plant, cam_radial, decide, sfm_distance)
+        plant, info["decision"] = _weigh_evidence(params, mu, candidate, cam_radial, decide, sfm_distance)
+    part[candidate & ~plant] = PART_NAMES.index("set aside")
+    part[plant] = PART_NAMES.index("plant")
     info["plant_gaussians"] = int(plant.sum())
-    return ObjectModel(params=params, plant=plant, cube=cube, axis=centre, up=up, info=info)
+    return ObjectModel(params=params, plant=plant, cube=cube, axis=centre, up=up, info=info, part=part)

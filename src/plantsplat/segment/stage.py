@@ -11,8 +11,9 @@ Runs after the poses stage: every registered frame has a calibrated camera. Back
 It reads the frames and the poses stage's model, cameras and markers (or the folder of ``import_masks``); it
 writes (see :class:`plantsplat.workspace.Workspace`) ``masks/frame_*.png`` (uint8, 255 = plant or cube),
 ``rgba/frame_*.png`` (alpha = mask), ``segment.json`` (backend, settings, per frame the foreground share and
-how sure the segmenter is, frames left out with the reason) and ``masks_preview.png`` (a contact sheet that
-shows the least sure frames first).
+how sure the segmenter is, frames left out with the reason), ``masks_preview.png`` (a contact sheet that
+shows the least sure frames first) and, for the ``3d`` backend, ``segment_decision.png`` (the quick model's
+Gaussians by what they were decided to be: :mod:`plantsplat.segment.decision_figure`).
 
 Usage:
     from plantsplat.segment import SegmentConfig, stage
@@ -49,6 +50,7 @@ from plantsplat.markers import recorded_cube
 from plantsplat.resources import usable_cores
 from plantsplat.segment.config import SegmentConfig
 from plantsplat.segment.decide import DecideConfig
+from plantsplat.segment.decision_figure import decision_figure
 from plantsplat.segment.frame import distortion_map, object_prior, refine, to_frame
 from plantsplat.segment.imports import import_masks
 from plantsplat.segment.object3d import object_model
@@ -63,8 +65,6 @@ log = get_logger(__name__)
 
 SEGMENT_VERSION = 2
 """Version of ``segment.json``'s layout."""
-PREVIEW_NAME = "masks_preview.png"
-"""The contact sheet's file name in the workspace."""
 FRACTION_DIGITS = 5
 """Decimals of the foreground shares in ``segment.json``."""
 PREVIEW_LEAST_SURE = 4
@@ -73,11 +73,6 @@ PREVIEW_SPREAD = 12
 """... then this many frames spread evenly over the capture ..."""
 PREVIEW_TILES = 16
 """... and at most this many frames in all."""
-
-
-def preview_path(ws: Workspace) -> Path:
-    """Where the mask contact sheet goes: ``WS/masks_preview.png``."""
-    return ws.root / PREVIEW_NAME
 
 
 def _write_png(path: Path, img: np.ndarray) -> None:
@@ -113,6 +108,8 @@ def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool 
     obj = object_model(params, views, calibrated_cube(ws), points, min_in_view=cfg.min_in_view,
                        sfm_reach=cfg.sfm_reach, seed=cfg.seed, decide=DecideConfig(enabled=cfg.weigh_evidence))
     save_object(ws, obj)
+    if cfg.preview:
+        decision_figure(obj, ws.segment_decision_png)
     by_name = {v.name: v for v in views}
     maps = distortion_map(views[0]) if views else None
     parts: dict[str, tuple[np.ndarray, np.ndarray]] = {}
@@ -138,6 +135,7 @@ def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool 
             pool.shutdown(cancel_futures=True)
             raise
     info = {"object": obj.info, "calibrated": obj.cube is not None, "sfm_points": int(len(points)),
+            **({"decision_figure": ws.segment_decision_png.name} if cfg.preview else {}),
             "timing": {"scene_model_s": round(t_model, 2)}}
     return parts, facts, info
 
@@ -248,7 +246,7 @@ def _write_outputs(ws: Workspace, names: list[str], masks: dict[str, np.ndarray]
     }
     if cfg.preview:
         _preview(ws, names, per_frame, {e["name"] for e in excluded})
-        out["preview"] = PREVIEW_NAME
+        out["preview"] = ws.masks_preview_png.name
     write_json_atomic(ws.segment_json, out)
     log.info("segment: wrote %d masks (%s), mean foreground %.1f%%%s, %.2f s per frame", len(names), backend,
              100 * out["foreground_fraction"]["mean"],
@@ -266,4 +264,4 @@ def _preview(ws: Workspace, names: list[str], per_frame: list[dict], excluded: s
     labels = [names[i] + (f"  sure {sure[i]:.2f}" if sure[i] is not None else "") for i in pick]
     sheet = contact_sheet([ws.images_dir / names[i] for i in pick], [ws.masks_dir / names[i] for i in pick],
                           labels=labels, excluded=[names[i] in excluded for i in pick], max_tiles=len(pick))
-    write_image_atomic(preview_path(ws), sheet)
+    write_image_atomic(ws.masks_preview_png, sheet)
