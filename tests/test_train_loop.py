@@ -332,6 +332,21 @@ def test_nan_gradients_are_skipped_and_counted(synth_capture, tmp_path, monkeypa
     assert all(bool(torch.isfinite(v).all()) for v in params.values())
 
 
+def test_all_threads_means_the_cores_the_process_may_use(synth_capture, tmp_path, monkeypatch):
+    """``threads=0`` gives torch the cores the process may use (a batch worker's share), not every core."""
+    import torch
+
+    from plantsplat.train import trainer
+
+    ws = synth_workspace(synth_capture(), tmp_path / "ws", every=4)
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "1")  # what `plantsplat batch` sets in a worker with one core
+    asked = []
+    monkeypatch.setattr(torch, "set_num_threads", asked.append)  # OpenMP's count is per thread: record the call
+    trainer.train_workspace(ws, TrainConfig(iterations=2, max_resolution=64, num_downscales=0, evaluate=False,
+                                            init_points=500, threads=0))
+    assert asked == [1]
+
+
 def test_nan_gradients_that_persist_stop_the_run(synth_capture, tmp_path, monkeypatch):
     from plantsplat.train import trainer
 

@@ -56,7 +56,8 @@ class TrainConfig:
     """Write a checkpoint at least this often (seconds); an interrupted run resumes from it."""
     threads: int = 1
     """Threads for torch's own CPU ops (the loss, the optimiser); the rasterizer's numba kernels use all
-    cores regardless. 1 is fastest on small images and busy machines (measured); 0 = all cores."""
+    cores regardless. 1 is fastest on small images and busy machines (measured); 0 = every core the process may use
+    (a batch worker's share)."""
     evaluate: bool = True
     """Compute PSNR/SSIM/LPIPS, render FPS and memory on the test views after training."""
     lpips_weights: Path | None = None

@@ -31,6 +31,7 @@ import plantsplat
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import os_error_message, remove_tree, replace_dir, write_json_atomic
 from plantsplat.log import get_logger, make_progress
+from plantsplat.resources import usable_cores
 from plantsplat.train import data as D
 from plantsplat.train.checkpoint import (
     STAGED_METRICS,
@@ -125,7 +126,7 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
     rc = cfg.resolved()
     final = train_paths(ws, cfg)
     paths = partial_paths(final)  # the previous model stays in final["dir"] until this run is complete
-    torch.set_num_threads(cfg.threads or os.cpu_count() or 1)  # torch's ops; numba keeps its own
+    torch.set_num_threads(cfg.threads or usable_cores())  # torch's ops; numba keeps its own
     note = plantsplat.omp_wait_policy_note()
     if note:
         log.warning("%s", note)
