@@ -62,6 +62,20 @@ def test_each_plant_runs_in_a_process_of_its_own(tmp_path, monkeypatch):
     assert made and all(k.get("max_tasks_per_child") == 1 for k in made)
 
 
+def test_batch_exit_codes_are_the_readmes():
+    """0: every plant succeeded; 4: the only failures are results that failed their checks; 1: a run failed."""
+    from plantsplat.commands.batch import batch_exit_code
+
+    ok = {"plant_id": "a", "status": "ok", "traits": {"quality": "ok"}}
+    judged = {"plant_id": "b", "status": "failed", "traits": {"quality": "failed"}}
+    broken = {"plant_id": "c", "status": "failed", "error": "poses: too few frames registered"}
+    skipped = {"plant_id": "d", "status": "skipped", "error": "nope.mov: not found"}
+    assert batch_exit_code({"n_failed": 0, "plants": [ok, ok]}) == 0
+    assert batch_exit_code({"n_failed": 1, "plants": [ok, judged]}) == 4
+    assert batch_exit_code({"n_failed": 2, "plants": [judged, broken]}) == 1
+    assert batch_exit_code({"n_failed": 1, "plants": [ok, skipped]}) == 1
+
+
 def test_failing_plant_does_not_stop_others_and_exit_code(tmp_path):
     # two plants whose input folders hold no images: both fail in the frames stage, each with its reason;
     # a missing file is skipped with its reason; the batch still writes its tables.

@@ -13,6 +13,7 @@ from plantsplat.errors import PlantsplatError
 from plantsplat.frames import FramesConfig
 from plantsplat.frames import stage as extraction
 from plantsplat.frames.select import sharpness, working_size
+from plantsplat.io import read_json
 from plantsplat.pipeline import frames_stage
 from plantsplat.workspace import Workspace
 
@@ -167,6 +168,32 @@ def test_interrupted_extraction_leaves_nothing_half_written(tmp_path, monkeypatc
     assert len(ws.image_names()) == 10 == len(info["frames"])
 
 
+def test_ctrl_c_is_exit_130_in_one_line_and_the_command_resumes(tmp_path, monkeypatch, capsys, interrupted_after):
+    """The README's exit code 130: Ctrl-C ends the command with one line, no traceback; the same command finishes.
+    A Ctrl-C that lands inside a C library's callback (raised as a SystemError caused by it) is the same."""
+    from plantsplat.cli import main
+
+    video = _write_video(tmp_path / "v.mp4", [_pattern(i, 64, 64) for i in range(20)])
+    real = extraction.write_image_atomic
+    args = ["frames", str(video), "--out", str(tmp_path / "ws"), "--num", "10"]
+    monkeypatch.setattr(extraction, "write_image_atomic", interrupted_after(real, 4))
+    assert main(args) == 130
+
+    def from_c(*a, **k):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as exc:
+            raise SystemError("<built-in function> returned a result with an exception set") from exc
+
+    monkeypatch.setattr(extraction, "write_image_atomic", from_c)
+    assert main(args) == 130
+    err = capsys.readouterr().err
+    assert err.count("interrupted: finished outputs are kept; re-run the same command to resume") == 2
+    assert "Traceback" not in err
+    monkeypatch.setattr(extraction, "write_image_atomic", real)
+    assert main(args) == 0 and len(Workspace(tmp_path / "ws").image_names()) == 10
+
+
 def test_full_disk_is_said_in_words(tmp_path, monkeypatch):
     import errno
 
@@ -213,6 +240,23 @@ def test_cli_frames(tmp_path, capsys):
     assert main(["frames", str(tmp_path / "missing.mp4"), "--out", str(tmp_path / "ws2")]) == 1
     err = capsys.readouterr().err
     assert "missing.mp4" in err and "Traceback" not in err
+
+
+def test_a_capture_short_of_what_registration_needs_is_told_at_the_start(tmp_path, capsys):
+    """Issue 42: too few frames or too small ones are said when the capture is read (the frames stage, the first of
+    `run`), each in one line that names what to film, and recorded in frames.json; a capture that has enough is not."""
+    from plantsplat.cli import main
+
+    video = _write_video(tmp_path / "v.mp4", [_pattern(i, 64, 96) for i in range(16)])
+    assert main(["frames", str(video), "--out", str(tmp_path / "ws"), "--num", "8"]) == 0
+    err = " ".join(capsys.readouterr().err.split())  # the log wraps long lines
+    assert "capture: 8 frames: a capture needs at least 100" in err
+    assert "capture: frames of 64x96 px: the short side should be at least 480 px (film at 1080p or more)" in err
+    assert len(read_json(Workspace(tmp_path / "ws").frames_json)["shortfalls"]) == 2
+    big = _write_video(tmp_path / "big.mp4", [_pattern(i, 480, 640) for i in range(110)])
+    assert main(["frames", str(big), "--out", str(tmp_path / "ws2"), "--num", "105"]) == 0
+    assert "capture:" not in capsys.readouterr().err
+    assert read_json(Workspace(tmp_path / "ws2").frames_json)["shortfalls"] == []
 
 
 def test_a_video_with_overwritten_bytes_is_the_videos_fault(synth_capture, tmp_path, capfd):

@@ -50,10 +50,21 @@ def run(cfg: BatchCommand) -> int:
                 "—" if m.get(k) is None else f"{m[k]:.3f}" for k in ("r2", "rmse", "mape", "mae", "acc")
             ])
         console.print(t)
+    return batch_exit_code(summary)
+
+
+def batch_exit_code(summary: dict) -> int:
+    """The batch's exit code: 0 when every plant succeeded; 4 (a failed result) when the only failures are results that
+    failed their checks, every file written; else 1 (a plant's run failed, or one was skipped).
+
+    Example:
+        >>> batch_exit_code({"n_failed": 1, "plants": [{"status": "ok"}, {"status": "failed",
+        ...                                                               "traits": {"quality": "failed"}}]})
+        4
+    """
     if summary["n_failed"] == 0:
         return 0
     results = {p["status"] for p in summary["plants"]}
-    # only results that failed their checks (every file written): the code of a failed result
     return EXIT_RESULT_FAILED if all(p["status"] == "ok" or (p.get("traits") or {}).get("quality") == "failed"
                                      for p in summary["plants"]) and "failed" in results else 1
 
