@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -144,6 +145,27 @@ def test_soil_drawn_by_a_few_wide_gaussians_is_found_by_their_footprints():
     assert not find_pot(points, axis).soil_seen
     pot = find_pot(points, axis, spread=spread)
     assert pot.soil_seen and abs(pot.soil_z - 9.5) <= 0.5
+
+
+def test_a_soil_drawn_as_a_thick_layer_is_a_band(tmp_path):
+    """Issue 41. A soil seen at grazing angles is drawn as a layer some slabs thick: the pot gives the band's top and
+    bottom, and the traits take the soil at its middle, with the band (and half a slab either side) as its bounds."""
+    from plantsplat.traits.checks import workspace_soil
+
+    rng = np.random.default_rng(6)
+    centre, axis = np.array([25.0, 10.0]), np.array([25.3, 9.8])
+    body = np.concatenate([_without_soil(pot_points(rng, soil=9.5), 9.5), plant_points(rng)])
+    rs, a = 6.8 * np.sqrt(rng.uniform(0, 1, 1500)), rng.uniform(0, 2 * np.pi, 1500)
+    layer = np.stack([centre[0] + rs * np.cos(a), centre[1] + rs * np.sin(a), rng.choice([9.5, 10.0, 10.5], 1500)], 1)
+    pot = find_pot(np.concatenate([body, layer]), axis)
+    assert pot.soil_seen and abs(pot.soil_z - 10.5) <= 0.25 and abs(pot.soil_bottom - 9.5) <= 0.25
+    assert pot.contains(np.array([[25.0, 10.0, 10.9]]), margin=0.5).all()  # the whole band is pot, not plant
+
+    ws = SimpleNamespace(segment_json=tmp_path / "segment.json")  # a workspace whose segment stage found that pot
+    ws.segment_json.write_text(json.dumps({"capture": {"object": {"pot": pot.summary()}}}))
+    z, _, disc, band = workspace_soil(ws, calibrated=True)
+    assert disc is None and z == pytest.approx((pot.soil_z + pot.soil_bottom) / 2)
+    assert band == pytest.approx(pot.soil_z - pot.soil_bottom)
 
 
 def test_no_pot_without_rings():

@@ -144,6 +144,9 @@ class Pot:
     radii: np.ndarray
     wall: float = 1.5
     """How far inside the outer radius the pot's wall and rim reach (cm); above the soil, inside that, is plant."""
+    soil_bottom: float | None = None
+    """The lowest slab of the band of slabs, from :attr:`soil_z` down, that cover the pot's inside: a soil seen at
+    grazing angles is drawn as a layer some slabs thick, and the soil's surface lies within it (None: one slab)."""
 
     @property
     def soil_seen(self) -> bool:
@@ -163,9 +166,10 @@ class Pot:
         return (d < r + margin) & (z > -margin) & (body | wall)
 
     def summary(self) -> dict:
+        bottom = self.soil_z if self.soil_bottom is None else self.soil_bottom
         return {"centre_cm": np.round(self.centre, 2).tolist(), "rim_z_cm": round(self.rim_z, 2),
-                "soil_z_cm": round(self.soil_z, 2), "rim_radius_cm": round(float(self.radii[-1]), 2),
-                "base_radius_cm": round(float(self.radii[0]), 2)}
+                "soil_z_cm": round(self.soil_z, 2), "soil_bottom_z_cm": round(bottom, 2),
+                "rim_radius_cm": round(float(self.radii[-1]), 2), "base_radius_cm": round(float(self.radii[0]), 2)}
 
 
 def _circle(xy: np.ndarray) -> tuple[np.ndarray, float]:
@@ -224,7 +228,7 @@ def find_pot(points: np.ndarray, axis_xy: np.ndarray, slab: float = POT_SLAB_CM,
     ``min_sectors`` of 16 directions), its top the highest slab above it that still holds that ring. The wall below follows
     the rings found there whose centre lies within ``wall_offset_cm`` of the rim's (a pot widens or narrows
     evenly). None when no ring is strong enough. ``spread`` ``[N, 2, 2]``: each point's horizontal covariance (a
-    Gaussian's footprint, for the soil's cover: :func:`soil_top_in_pot`); None for points without extent.
+    Gaussian's footprint, for the soil's cover: :func:`soil_band_in_pot`); None for points without extent.
     """
     rng = np.random.default_rng(seed)
     close = np.linalg.norm(points[:, :2] - axis_xy, axis=1) < reach
@@ -246,24 +250,27 @@ def find_pot(points: np.ndarray, axis_xy: np.ndarray, slab: float = POT_SLAB_CM,
             if z < z_rim and np.linalg.norm(c - centre) < wall_offset_cm and r <= r_rim + 1.0]
     heights = np.array([0.0] + [z for z, _ in wall] + [z_rim])
     radii = np.array([wall[0][1] if wall else r_rim] + [r for _, r in wall] + [r_rim])
-    return Pot(centre=np.asarray(centre), rim_z=float(z_rim), soil_z=soil_top_in_pot(near, centre, r_rim, z_rim, slab,
-                                                                  spread=None if spread is None else spread[close]),
-               heights=heights, radii=np.maximum.accumulate(radii))
+    top, bottom = soil_band_in_pot(near, centre, r_rim, z_rim, slab, spread=None if spread is None else spread[close])
+    return Pot(centre=np.asarray(centre), rim_z=float(z_rim), soil_z=top, heights=heights,
+               radii=np.maximum.accumulate(radii), soil_bottom=bottom)
 
 
-def soil_top_in_pot(points: np.ndarray, centre: np.ndarray, r_rim: float, z_rim: float, slab: float,
-                    depth: float = 6.0, cover: float = 0.5, inner: float = 0.8, rings: int = 8, sectors: int = 16,
-                    spread: np.ndarray | None = None) -> float:
-    """The top of the soil in a pot: the highest slab below the rim whose Gaussians cover at least ``cover`` of the
-    disc inside the rim (``inner`` of its radius, in ``rings`` rings of equal area x ``sectors`` directions); the
-    rim when none does. The crown and the petioles' feet above the soil are near the axis and do not cover the
-    disc. A cell is covered when a point of the slab lies in it or, with ``spread`` (``[N, 2, 2]`` horizontal
-    covariances), when its centre lies within one standard deviation of a point's footprint: a quick model draws
-    an even soil with a few wide, flat Gaussians, whose centres alone leave most cells empty."""
+def soil_band_in_pot(points: np.ndarray, centre: np.ndarray, r_rim: float, z_rim: float, slab: float,
+                     depth: float = 6.0, cover: float = 0.5, inner: float = 0.8, rings: int = 8, sectors: int = 16,
+                     spread: np.ndarray | None = None) -> tuple[float, float]:
+    """The soil in a pot as the band of slabs that cover its inside: ``(top, bottom)``. The top is the highest slab
+    below the rim whose Gaussians cover at least ``cover`` of the disc inside the rim (``inner`` of its radius, in
+    ``rings`` rings of equal area x ``sectors`` directions), the bottom the lowest of the slabs below it that still
+    do, without a gap; ``(rim, rim)`` when none does. The crown and the petioles' feet above the soil are near the
+    axis and do not cover the disc. A cell is covered when a point of the slab lies in it or, with ``spread``
+    (``[N, 2, 2]`` horizontal covariances), when its centre lies within one standard deviation of a point's
+    footprint: a quick model draws an even soil with a few wide, flat Gaussians, whose centres alone leave most
+    cells empty."""
     rin = inner * r_rim
     d = np.linalg.norm(points[:, :2] - centre, axis=1)
     az = np.arctan2(points[:, 1] - centre[1], points[:, 0] - centre[0])
     cell_xy = _disc_cells(centre, rin, rings, sectors)  # [rings * sectors, 2]
+    band: list[float] = []
     for z in np.arange(z_rim, z_rim - depth, -slab):
         s = np.abs(points[:, 2] - z) < slab
         inside = s & (d < rin)
@@ -273,13 +280,15 @@ def soil_top_in_pot(points: np.ndarray, centre: np.ndarray, r_rim: float, z_rim:
         if spread is not None and s.any():
             cells |= _within_footprints(cell_xy, points[s, :2], spread[s]).reshape(rings, sectors)
         if cells.mean() >= cover:
-            return float(z)
-    return float(z_rim)
+            band.append(float(z))
+        elif band:
+            break
+    return (band[0], band[-1]) if band else (float(z_rim), float(z_rim))
 
 
 def _disc_cells(centre: np.ndarray, radius: float, rings: int, sectors: int) -> np.ndarray:
     """Centres ``[rings * sectors, 2]`` of a disc's cells (rings of equal area x sectors, row-major by ring), in the
-    order :func:`soil_top_in_pot` indexes them."""
+    order :func:`soil_band_in_pot` indexes them."""
     r = radius * np.sqrt((np.arange(rings) + 0.5) / rings)
     a = (np.arange(sectors) + 0.5) / sectors * 2 * np.pi - np.pi
     return centre + np.stack([np.outer(r, np.cos(a)), np.outer(r, np.sin(a))], -1).reshape(-1, 2)

@@ -84,35 +84,39 @@ class QualityThresholds:
     nothing but that point."""
 
 
-def workspace_soil(ws, calibrated: bool) -> tuple[float | None, str, tuple | None]:
-    """The soil surface's height (cm, cube frame), where it comes from, and the pot's inner disc
-    ``(centre xy, radius)`` when the soil was not seen and the rim stands for it (then the plant's lowest
-    point inside the pot bounds it: nothing of the plant grows below the soil); ``(None, why, None)``
-    when there is no pot.
+def workspace_soil(ws, calibrated: bool) -> tuple[float | None, str, tuple | None, float]:
+    """The soil surface's height (cm, cube frame), where it comes from, the pot's inner disc ``(centre xy, radius)``
+    when the soil was not seen and the rim stands for it (then the plant's lowest point inside the pot bounds it:
+    nothing of the plant grows below the soil), and how thick the band it was seen in is (cm; 0 for one slab or
+    unseen). A soil seen as a band of slabs is taken at the band's middle. ``(None, why, None, 0.0)`` when there is
+    no pot.
 
     The segment stage's pot (found as rings in its quick 3D model) gives it; without that (imported masks)
     the pot is looked for among the poses stage's SfM points.
     """
     if not calibrated:
-        return None, "none: the cloud is not calibrated, so the height is the plant's extent", None
+        return None, "none: the cloud is not calibrated, so the height is the plant's extent", None, 0.0
     if ws.segment_json.is_file():
         pot = (((read_json(ws.segment_json).get("capture") or {}).get("object") or {}).get("pot")) or {}
         if pot.get("soil_z_cm") is not None:
-            return _soil_of(pot["soil_z_cm"], pot.get("rim_z_cm", np.inf), pot.get("centre_cm"),
-                            pot.get("rim_radius_cm"), "the pot the segment stage found in 3D")
+            return _soil_of(pot["soil_z_cm"], pot.get("soil_bottom_z_cm", pot["soil_z_cm"]), pot.get("rim_z_cm", np.inf),
+                            pot.get("centre_cm"), pot.get("rim_radius_cm"), "the pot the segment stage found in 3D")
     pot = _pot_from_sfm(ws)
     if pot is not None:
-        return _soil_of(pot.soil_z, pot.rim_z, pot.centre, pot.radii[-1], "the pot found among the SfM points")
-    return None, "no pot found: the height is the plant's extent (a plant in the ground)", None
+        bottom = pot.soil_z if pot.soil_bottom is None else pot.soil_bottom
+        return _soil_of(pot.soil_z, bottom, pot.rim_z, pot.centre, pot.radii[-1], "the pot found among the SfM points")
+    return None, "no pot found: the height is the plant's extent (a plant in the ground)", None, 0.0
 
 
-def _soil_of(soil_z: float, rim_z: float, centre, rim_radius, source: str) -> tuple[float, str, tuple | None]:
-    """:func:`workspace_soil`'s answer for a pot: the soil, its source, and the pot's inner disc when the rim stood
-    for an unseen soil."""
+def _soil_of(soil_z: float, bottom: float, rim_z: float, centre, rim_radius, source: str
+             ) -> tuple[float, str, tuple | None, float]:
+    """:func:`workspace_soil`'s answer for a pot: the soil (the middle of the band from ``soil_z`` down to ``bottom``
+    it was seen in), its source, the pot's inner disc when the rim stood for an unseen soil, and the band's
+    thickness."""
     if soil_z < rim_z:
-        return float(soil_z), source, None
+        return (soil_z + bottom) / 2, source, None, float(soil_z - bottom)
     disc = (np.asarray(centre, float), SOIL_DISC_SHARE * float(rim_radius))
-    return float(soil_z), source + " (soil not seen: at most the rim)", disc
+    return float(soil_z), source + " (soil not seen: at most the rim)", disc, 0.0
 
 
 def _pot_from_sfm(ws):

@@ -129,7 +129,7 @@ def run(ws, cfg=None, *, points_path: str | Path | None = None, calibrated: bool
         data = read_point_cloud(ply, "run `plantsplat export` first or pass --points")
     log.info("traits: %s (%d points, %s)", ply, len(data["xyz"]), "calibrated cm" if calibrated else "unscaled")
     cams = camera_centres(ws)
-    soil_z, soil_source, soil_disc = workspace_soil(ws, calibrated)
+    soil_z, soil_source, soil_disc, soil_band = workspace_soil(ws, calibrated)
     cube = recorded_cube(ws.markers_json)  # the cube the poses stage measured with
     res = measure_traits(data["xyz"], data["rgb"], calibrated=calibrated, opacity=data["opacity"],
                          scales=data["scales"], camera_centres=None if calibrated else cams, settings=s,
@@ -142,7 +142,7 @@ def run(ws, cfg=None, *, points_path: str | Path | None = None, calibrated: bool
     if calibrated and ws.poses_json.is_file():
         se = (read_json(ws.poses_json).get("scale_uncertainty") or {}).get("relative_se")
         out["scale"]["standard_error_pct"] = None if se is None else round(100.0 * se, 3)  # the cube's, from poses
-    soil = _height_bounds(out, res, soil_z if calibrated else None, soil_disc, se)
+    soil = _height_bounds(out, res, soil_z if calibrated else None, soil_disc, se, soil_band)
     _judge(out, res, ws, cams if calibrated else None, soil, cube_edge_cm(s, cube))
     write_json_atomic(ws.traits_json, out)
     write_text_atomic(ws.traits_csv, traits_csv_text(out, ws.root.name))
@@ -157,7 +157,8 @@ def run(ws, cfg=None, *, points_path: str | Path | None = None, calibrated: bool
     return out
 
 
-def _height_bounds(out: dict, res: TraitResult, soil_z: float | None, disc: tuple | None, scale_se: float | None):
+def _height_bounds(out: dict, res: TraitResult, soil_z: float | None, disc: tuple | None, scale_se: float | None,
+                   band_cm: float = 0.0):
     """The soil's interval and the height's bounds (:mod:`plantsplat.traits.height`) into ``out``
     (``soil_interval_cm``, ``height_bounds_cm``); returns the soil interval (None: no pot, or no plant)."""
     P = res.plant_points
@@ -165,7 +166,8 @@ def _height_bounds(out: dict, res: TraitResult, soil_z: float | None, disc: tupl
         return None
     soil = None
     if soil_z is not None:  # where it was not seen (a disc), the measurement lowered the rim to the plant's base
-        soil = soil_interval(soil_z, disc is None, POT_SLAB_CM, None if disc is None else res.soil_z, res.base_spread)
+        soil = soil_interval(soil_z, disc is None, POT_SLAB_CM + band_cm, None if disc is None else res.soil_z,
+                             res.base_spread)
         out["soil_interval_cm"] = [round(soil.low, 3), round(soil.high, 3)]
     lo, hi = height_bounds(float(P[:, 2].max()), soil, scale_se, out.get("height_extent_cm"))
     out["height_bounds_cm"] = [round(lo, 3), round(hi, 3)]
