@@ -150,7 +150,9 @@ def test_soil_drawn_by_a_few_wide_gaussians_is_found_by_their_footprints():
 def test_a_soil_drawn_as_a_thick_layer_is_a_band(tmp_path):
     """Issue 41. A soil seen at grazing angles is drawn as a layer some slabs thick: the pot gives the band's top and
     bottom, and the traits take the soil at its middle, with the band (and half a slab either side) as its bounds."""
+    from plantsplat.segment.object3d import POT_SLAB_CM
     from plantsplat.traits.checks import workspace_soil
+    from plantsplat.traits.height import soil_interval
 
     rng = np.random.default_rng(6)
     centre, axis = np.array([25.0, 10.0]), np.array([25.3, 9.8])
@@ -166,6 +168,8 @@ def test_a_soil_drawn_as_a_thick_layer_is_a_band(tmp_path):
     z, _, disc, band = workspace_soil(ws, calibrated=True)
     assert disc is None and z == pytest.approx((pot.soil_z + pot.soil_bottom) / 2)
     assert band == pytest.approx(pot.soil_z - pot.soil_bottom)
+    interval = soil_interval(z, True, max(POT_SLAB_CM, band), None)  # as the traits stage bounds it
+    assert (interval.low, interval.high) == pytest.approx((pot.soil_bottom, pot.soil_z))
 
 
 def test_no_pot_without_rings():
@@ -193,6 +197,7 @@ def test_object_model_keeps_the_plant_and_leaves_out_pot_cube_room_and_floaters(
               for k, name in enumerate(("pot", "plant", "cube", "room", "room"))}
     assert {name: PART_NAMES[v] for name, v in called.items()} == {n: n for n in called}
     assert (obj.part == PART_NAMES.index("plant")).sum() == obj.plant.sum()
+    assert obj.info["plant_top_cm"] == pytest.approx(28.0, abs=0.3)  # the leaves reach 28 cm
     decision_figure(obj, tmp_path / "decision.png")  # the report's picture of it
     img = cv2.imread(str(tmp_path / "decision.png"))
     assert img is not None and img.shape[1] > 800

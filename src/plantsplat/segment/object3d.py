@@ -212,6 +212,10 @@ def ring(xy: np.ndarray, axis_xy: np.ndarray, rng: np.random.Generator, band: fl
     return best[0], best[1], c, r
 
 
+TOP_PERCENTILE = 99.9
+"""The decided plant's top is this percentile of its opaque Gaussians' heights."""
+TOP_OPACITY = 0.5
+"""Gaussians at least this opaque count for the decided plant's top."""
 POT_SLAB_CM = 0.5
 """Thickness of the horizontal slabs the pot (and its soil) is looked for in: the soil's height is known to it."""
 FOOTPRINT_FLOOR_CM2 = 1e-6
@@ -376,6 +380,14 @@ def _weigh_evidence(params: dict, mu: np.ndarray, candidate: np.ndarray, orbit_r
     return decide_plant(mu, rgb, opacity, candidate, opaque & ~candidate, orbit_radius, sfm_distance, cfg)
 
 
+def plant_top(params: dict, plant: np.ndarray) -> float | None:
+    """The top of the decided plant: the :data:`TOP_PERCENTILE` percentile of its opaque Gaussians' heights (a few
+    stray ones above it aside); None without any."""
+    z = params["means"].numpy()[:, 2]
+    sure = plant & (torch.sigmoid(params["opacities"]).numpy().reshape(-1) > TOP_OPACITY)
+    return float(np.percentile(z[sure], TOP_PERCENTILE)) if sure.any() else None
+
+
 def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: np.ndarray, reach: float = 0.55,
                  min_in_view: float = 0.85, sfm_reach: float = 0.07, ground_cm: float = 1.0,
                  pot_margin_cm: float = 1.0, seed: int = 0, decide: DecideConfig | None = None,
@@ -432,4 +444,7 @@ def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: n
     part[candidate & ~plant] = PART_NAMES.index("set aside")
     part[plant] = PART_NAMES.index("plant")
     info["plant_gaussians"] = int(plant.sum())
+    top = plant_top(params, plant)
+    if cube is not None and top is not None:
+        info["plant_top_cm"] = round(top, 2)
     return ObjectModel(params=params, plant=plant, cube=cube, axis=centre, up=up, info=info, part=part)

@@ -1,9 +1,9 @@
 """The height's bounds: the interval the soil can lie in, widened by the scale's uncertainty.
 
 A height from the soil is only as sure as the soil. Where the soil was seen in the pot (the segment
-stage's quick model, or the SfM points), it lies within the band of slabs it was seen in, widened by half
-a slab either side, and is taken at the band's middle (a soil seen at grazing angles is drawn as a layer
-some slabs thick). Where the
+stage's quick model, or the SfM points), it lies within the band of slabs it was seen in (within half a
+slab of the one slab that saw it), and is taken at the band's middle: a soil seen at grazing angles is
+drawn as a layer some slabs thick. Where the
 leaves hide it, everything that holds in any pot still bounds it: it lies no higher than the rim and
 no higher than the plant's lowest point over the pot's inside (nothing of the plant grows below the
 soil), and no lower than the ground the pot stands on. The height the traits give is measured from

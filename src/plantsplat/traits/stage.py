@@ -166,12 +166,19 @@ def _height_bounds(out: dict, res: TraitResult, soil_z: float | None, disc: tupl
         return None
     soil = None
     if soil_z is not None:  # where it was not seen (a disc), the measurement lowered the rim to the plant's base
-        soil = soil_interval(soil_z, disc is None, POT_SLAB_CM + band_cm, None if disc is None else res.soil_z,
-                             res.base_spread)
+        soil = soil_interval(soil_z, disc is None, max(POT_SLAB_CM, band_cm), None if disc is None else res.soil_z,
+                             res.base_spread)  # a band of slabs holds the soil; one slab, within half of it
         out["soil_interval_cm"] = [round(soil.low, 3), round(soil.high, 3)]
     lo, hi = height_bounds(float(P[:, 2].max()), soil, scale_se, out.get("height_extent_cm"))
     out["height_bounds_cm"] = [round(lo, 3), round(hi, 3)]
     return soil
+
+
+def _decided_top(ws) -> float | None:
+    """The top of the plant the segment stage decided in its quick model (cm, cube frame; ``segment.json``), or None."""
+    if not ws.segment_json.is_file():
+        return None
+    return (((read_json(ws.segment_json).get("capture") or {}).get("object") or {}).get("plant_top_cm"))
 
 
 def _judge(out: dict, res: TraitResult, ws, cams: np.ndarray | None, soil, cube_cm: float) -> None:
@@ -182,7 +189,8 @@ def _judge(out: dict, res: TraitResult, ws, cams: np.ndarray | None, soil, cube_
         top = float(res.plant_points[:, 2].max())
         checks += result_checks(res.traits, len(res.plant_points), top if cams is not None else None,
                                 None if cams is None else float(cams[:, 2].max()), cube_cm,
-                                height_bounds=out.get("height_bounds_cm"), soil=soil)
+                                height_bounds=out.get("height_bounds_cm"), soil=soil,
+                                decided_top_cm=_decided_top(ws) if cams is not None else None)
     out["checks"] = [c.as_dict() for c in checks]
     verdict = quality(checks)
     order = ["ok", "warning", "failed"]
