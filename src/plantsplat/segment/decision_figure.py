@@ -36,17 +36,16 @@ MARGIN = 0.15
 def decision_figure(obj, path: str | Path, max_points: int = MAX_POINTS) -> None:
     """Draw the decision of ``obj`` (an :class:`~plantsplat.segment.object3d.ObjectModel` with ``part``) to a PNG."""
     matplotlib.use("Agg")
-    mu = obj.params["means"].numpy()
+    mu = _upright(obj)  # [N, 3]: across, across, up
     opaque = torch.sigmoid(obj.params["opacities"]).numpy().reshape(-1) >= SHOWN_OPACITY
-    reach = float(obj.info.get("reach", np.inf))
-    near = np.linalg.norm(mu[:, :2] - np.asarray(obj.axis)[:2], axis=1) < reach
+    near = np.linalg.norm(mu[:, :2], axis=1) < float(obj.info.get("reach", np.inf))
     shown = np.flatnonzero(opaque & near)
     if len(shown) > max_points:
         shown = np.sort(np.random.default_rng(0).choice(shown, max_points, replace=False))
     part = obj.part[shown]
     lo, hi = _frame(mu[shown[part != PART_NAMES.index("room")]])
     fig, axes = plt.subplots(1, 2, figsize=(12, 5.5))
-    for ax, (a, b, label) in zip(axes, ((0, 1, "top view: x, y"), (0, 2, "side view: x, z"))):
+    for ax, (a, b, label) in zip(axes, ((0, 1, "from above"), (0, 2, "from the side"))):
         for k, name in enumerate(PART_NAMES):  # room first, what was set aside last (on top)
             m = part == k
             if m.any():
@@ -57,7 +56,7 @@ def decision_figure(obj, path: str | Path, max_points: int = MAX_POINTS) -> None
             ax.set_ylim(lo[b], hi[b])
         ax.set_aspect("equal")
         ax.set_title(label)
-        ax.set_xlabel("cm, cube frame" if obj.cube is not None else "model units")
+        ax.set_xlabel("cm, from the orbit's axis" if obj.cube is not None else "model units, from the orbit's axis")
     axes[0].legend(loc="upper right", fontsize=8, markerscale=3)
     fig.suptitle("The 3D decision: the quick model's opaque Gaussians near the orbit's axis, by what they were "
                  "called (counts: all Gaussians)", fontsize=10)
@@ -76,3 +75,19 @@ def _frame(points: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
     lo, hi = np.percentile(points, 0.5, axis=0), np.percentile(points, 99.5, axis=0)
     pad = MARGIN * float(np.max(hi - lo))
     return lo - pad, hi + pad
+
+
+def _upright(obj) -> np.ndarray:
+    """The quick model's Gaussian centres ``[N, 3]`` in a frame on the orbit's axis with its third axis up: the cube
+    frame's axes, moved onto the axis, heights from the ground, when the model is calibrated; else two directions
+    across the axis the cameras circle and up along it, from the point the cameras look at."""
+    mu = obj.params["means"].numpy().astype(np.float64)
+    up = np.asarray(obj.up, np.float64) / np.linalg.norm(obj.up)
+    axis = np.asarray(obj.axis, np.float64)
+    if obj.cube is not None:  # heights from the ground the cube stands on
+        origin, basis = np.r_[axis[:2], 0.0], np.eye(3)
+    else:
+        across = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+        across /= np.linalg.norm(across)
+        origin, basis = axis, np.stack([across, np.cross(up, across), up])  # rows: across, across, up
+    return (mu - origin) @ basis.T
