@@ -75,10 +75,10 @@ class QualityThresholds:
     the heights from it came out 3-13 % tall."""
     top_short_share: float = 0.05
     """fail: the measured plant's top lies lower than the top of the plant the segment stage decided in 3D by more
-    than this share of the height: a part of the plant (a flower on a thin stalk) was lost between the two, and the
-    height falls short with it (synthetic seed 82, 2026-11-27: 1.4 cm of a 12 cm plant, height -16 %; on eleven
-    other captures the measured top lay 0.1-0.4 cm above the decided one, as it is measured at the Gaussians'
-    extents)."""
+    than this share of the height: a part of the plant was lost between the two, and the height falls short with it
+    (synthetic seed 82, 2026-11-27: a flower on a thin stalk, cut out of half the masks by their refinement and so
+    lost in training, 1.4 cm of a 12 cm plant, height -16 %; on eleven other captures the measured top lay 0.1-0.4 cm
+    above the decided one, as it is measured at the Gaussians' extents)."""
     base_spread: float = 0.5
     """fail: where the soil was not seen, the plant's lowest centimetre in the pot spreads over more than this share
     of the inside's radius (RMS from the axis; 0.71 for a layer even over the inside, a crown stands near the
