@@ -142,11 +142,12 @@ class Pot:
     soil_z: float
     heights: np.ndarray
     radii: np.ndarray
+    soil_bottom: float
+    """The lowest slab of the band of slabs, from :attr:`soil_z` down, that cover the pot's inside (:attr:`soil_z`
+    itself for one slab, or where the soil was not seen): a soil seen at grazing angles is drawn as a layer some slabs
+    thick, and the soil's surface lies within it."""
     wall: float = 1.5
     """How far inside the outer radius the pot's wall and rim reach (cm); above the soil, inside that, is plant."""
-    soil_bottom: float | None = None
-    """The lowest slab of the band of slabs, from :attr:`soil_z` down, that cover the pot's inside: a soil seen at
-    grazing angles is drawn as a layer some slabs thick, and the soil's surface lies within it (None: one slab)."""
 
     @property
     def soil_seen(self) -> bool:
@@ -166,9 +167,8 @@ class Pot:
         return (d < r + margin) & (z > -margin) & (body | wall)
 
     def summary(self) -> dict:
-        bottom = self.soil_z if self.soil_bottom is None else self.soil_bottom
         return {"centre_cm": np.round(self.centre, 2).tolist(), "rim_z_cm": round(self.rim_z, 2),
-                "soil_z_cm": round(self.soil_z, 2), "soil_bottom_z_cm": round(bottom, 2),
+                "soil_z_cm": round(self.soil_z, 2), "soil_bottom_z_cm": round(self.soil_bottom, 2),
                 "rim_radius_cm": round(float(self.radii[-1]), 2), "base_radius_cm": round(float(self.radii[0]), 2)}
 
 

@@ -109,8 +109,7 @@ def workspace_soil(ws, calibrated: bool) -> tuple[float | None, str, tuple | Non
                             pot.get("centre_cm"), pot.get("rim_radius_cm"), "the pot the segment stage found in 3D")
     pot = _pot_from_sfm(ws)
     if pot is not None:
-        bottom = pot.soil_z if pot.soil_bottom is None else pot.soil_bottom
-        return _soil_of(pot.soil_z, bottom, pot.rim_z, pot.centre, pot.radii[-1], "the pot found among the SfM points")
+        return _soil_of(pot.soil_z, pot.soil_bottom, pot.rim_z, pot.centre, pot.radii[-1], "the pot found among the SfM points")
     return None, "no pot found: the height is the plant's extent (a plant in the ground)", None, 0.0
 
 
