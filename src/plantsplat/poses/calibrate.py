@@ -33,8 +33,12 @@ from scipy.spatial.transform import Rotation
 
 from plantsplat.cube import CubeSpec
 from plantsplat.log import get_logger
+from plantsplat.poses.sfm import final_ba_options
 
 log = get_logger(__name__)
+
+CUBE_BA_ITERATIONS = 50
+"""Iterations of the bundle adjustment on the cube's corners."""
 
 
 @dataclass
@@ -304,7 +308,7 @@ def up_vector(cal: Calibration | None) -> np.ndarray | None:
 
 
 def refine_with_cube(rec, detections: dict, cal: Calibration, cube: CubeSpec = CubeSpec(), num_threads: int = 2,
-                     within_px: float | None = None) -> int:
+                     within_px: float | None = None, refine_distortion: bool = True, loss_scale_px: float = 1.0) -> int:
     """Bundle adjustment of a model already in the cube frame, with the marker corners as control points.
 
     Every marker corner seen in two or more frames (detections kept by :func:`calibrate`) is added
@@ -313,6 +317,8 @@ def refine_with_cube(rec, detections: dict, cal: Calibration, cube: CubeSpec = C
     cube's metric geometry then constrains the focal length and scale along with the SfM tracks.
     ``within_px``: detections that :func:`calibrate` rejected but that lie within this many pixels
     are used too (for a model warped as a whole, whose residuals exceed the detections' own error).
+    ``refine_distortion``: refine the lens distortion too (False keeps it as it is); ``loss_scale_px``: the Cauchy
+    loss's scale on the reprojection errors (:func:`plantsplat.poses.sfm.final_ba_options`).
     Returns the number of control points added (0: nothing done).
     """
     rejected = {(n, m) for n, m, r in cal.detections_rejected if within_px is None or r > within_px}
@@ -353,14 +359,7 @@ def refine_with_cube(rec, detections: dict, cal: Calibration, cube: CubeSpec = C
         config.add_image(im.image_id)
     for pid in ids:
         config.add_constant_point(pid)
-    opts = pycolmap.BundleAdjustmentOptions()
-    opts.refine_focal_length = True
-    opts.refine_extra_params = True
-    opts.refine_principal_point = False
-    opts.print_summary = False
-    opts.ceres.use_gpu = False
-    opts.ceres.solver_options.num_threads = num_threads
-    opts.ceres.solver_options.max_num_iterations = 50
+    opts = final_ba_options(refine_distortion, num_threads, loss_scale_px, CUBE_BA_ITERATIONS)
     adjuster = pycolmap.create_default_bundle_adjuster(opts, config, rec)
     adjuster.solve()
     return len(ids)

@@ -38,6 +38,12 @@ class PosesConfig:
     mapping, then incremental mapping continued from it), or auto (both; the model its own matches contradict least)."""
     camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "RADIAL"
     """COLMAP camera model shared by all frames (phones: RADIAL)."""
+    distortion: Literal["auto", "fit"] = "auto"
+    """The camera model's lens distortion: ``auto`` fits it only where the frames support it (BIC,
+    :mod:`plantsplat.poses.distortion`), else sets it to zero; ``fit`` always fits it, as COLMAP does."""
+    ba_loss_px: float = 1.0
+    """Scale (px) of the Cauchy loss on reprojection errors in the bundle adjustments after mapping (the distortion
+    test, the cube's): errors well above it weigh less."""
     max_features: int = 2048
     """SIFT features per frame."""
     sift_first_octave: int = -1

@@ -294,9 +294,10 @@ def _leave_out_cube_misses(rec, cal, cfg: PosesConfig, report: dict) -> None:
 
 
 def calibrate_model(rec, markers: Markers, cube: CubeSpec, cfg: PosesConfig, sfm: bool, report: dict,
-                    order: list[str] | None = None):
-    """Move ``rec`` into the cube frame (cm, z up); with ``sfm``, bundle-adjust on the cube's corners. Returns the
-    calibration (None without markers). ``order``: the frames in video order, for the scale's uncertainty."""
+                    order: list[str] | None = None, refine_distortion: bool = True):
+    """Move ``rec`` into the cube frame (cm, z up); with ``sfm``, bundle-adjust on the cube's corners (the lens
+    distortion too with ``refine_distortion``). Returns the calibration (None without markers). ``order``: the frames
+    in video order, for the scale's uncertainty."""
     det = markers.frames
     cal = calibrate(rec, det, cube, cfg.max_residual_px) if det else None
     if cal is None:
@@ -308,7 +309,8 @@ def calibrate_model(rec, markers: Markers, cube: CubeSpec, cfg: PosesConfig, sfm
     if sfm and cfg.cube_bundle_adjustment and cal.consistent:
         t0 = time.perf_counter()
         with colmap_logging(cfg.colmap_log):
-            n_ctrl = refine_with_cube(rec, det, cal, cube, MAP_THREADS)
+            n_ctrl = refine_with_cube(rec, det, cal, cube, MAP_THREADS, refine_distortion=refine_distortion,
+                                      loss_scale_px=cfg.ba_loss_px)
         if n_ctrl:
             cal2 = calibrate(rec, det, cube, cfg.max_residual_px)
             if cal2 is not None and cal2.consistent:

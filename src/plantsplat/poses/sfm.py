@@ -350,6 +350,25 @@ def merge_models(models: list, db: Path, image_dir: Path, work_dir: Path, opts: 
     return retriangulate(base, poses, db, image_dir, work_dir, opts)
 
 
+def final_ba_options(refine_distortion: bool, num_threads: int, loss_scale_px: float, iterations: int):
+    """COLMAP's options for a bundle adjustment of a mapped model: focal length refined (the lens distortion too with
+    ``refine_distortion``), principal point fixed, and a Cauchy loss of scale ``loss_scale_px`` on each reprojection
+    error, so that the few matches left off by pixels do not pull the focal length and the cameras."""
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
+
+    opts = pycolmap.BundleAdjustmentOptions()
+    opts.refine_focal_length = True
+    opts.refine_extra_params = refine_distortion
+    opts.refine_principal_point = False
+    opts.print_summary = False
+    opts.ceres.use_gpu = False
+    opts.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    opts.ceres.loss_function_scale = loss_scale_px
+    opts.ceres.solver_options.num_threads = num_threads
+    opts.ceres.solver_options.max_num_iterations = iterations
+    return opts
+
+
 def retriangulate(like, poses: dict, db: Path, image_dir: Path, work_dir: Path, opts: SfmConfig):
     """A model of the frames in ``poses`` (name -> cam_from_world) with the camera of ``like``: every match in
     ``db`` triangulated, then a bundle adjustment of poses, points and intrinsics."""

@@ -31,6 +31,7 @@ from plantsplat.log import get_logger
 from plantsplat.markers import Markers, detect_frames, write_markers
 from plantsplat.poses.calibrate import up_vector
 from plantsplat.poses.config import MIN_FRAMES, POSES_VERSION, WORK_DIR, PosesConfig
+from plantsplat.poses.distortion import choose_distortion
 from plantsplat.poses.estimate import (
     calibrate_model,
     import_model,
@@ -41,7 +42,7 @@ from plantsplat.poses.estimate import (
     shown_names,
 )
 from plantsplat.poses.interop import registered_images, write_colmap, write_points_ply, write_transforms
-from plantsplat.poses.sfm import colmap_logging, n_threads_env
+from plantsplat.poses.sfm import MAP_THREADS, colmap_logging, n_threads_env
 from plantsplat.pycolmap_loader import load_pycolmap
 from plantsplat.workspace import Workspace
 
@@ -102,7 +103,13 @@ def run(ws: Workspace | str | Path, cfg: PosesConfig | None = None) -> dict:
     times = video_times(ws, names)
     rec = register(ws, names, times, cfg, report) if sfm else import_model(ws, names, cfg, report)
     t0 = time.perf_counter()
-    cal = calibrate_model(rec, markers, cube, cfg, sfm, report, [n for _, n in sorted(zip(times, names))])
+    distortion = True
+    if sfm and cfg.distortion == "auto":
+        with colmap_logging(cfg.colmap_log):
+            rec, distortion = choose_distortion(rec, MAP_THREADS, cfg.ba_loss_px, report)
+    report["timings"]["distortion_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    cal = calibrate_model(rec, markers, cube, cfg, sfm, report, [n for _, n in sorted(zip(times, names))], distortion)
     report["timings"]["calibrate_s"] = time.perf_counter() - t0
     if sfm and cal is not None:  # the cube's bundle adjustment moves weakly held cameras: judge the path again
         leave_out_off_path(rec, names, times, cfg, report)
