@@ -10,8 +10,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from plantsplat import traitdefs
+from plantsplat.cube import cube_surface_points
 from plantsplat.traits.config import TraitsConfig
-from plantsplat.traits.cube_fit import cube_surface_points, decide_up, fit_cube_planes
+from plantsplat.traits.cube_fit import decide_up, fit_cube_planes
 from plantsplat.traits.fruit import fruit_mask
 from plantsplat.traits.measure import measure_traits
 from plantsplat.traits.stats import accuracy_table, format_table, mae, mape, r2, rmse, scatter_plots
@@ -187,6 +188,29 @@ def test_gaussian_cube_measured_by_its_envelope_not_its_sunken_planes():
     assert planes.scale["cube_edge_method"] == "planes" and any("ArUco" in r for r in planes.reasons)
     # without opacities or extent samples (any point cloud) 'auto' fits planes
     assert measure_traits(pts, cols, calibrated=True).scale["cube_edge_method"] == "planes"
+
+
+def test_cube_axes_compared_between_seen_faces_only():
+    """The cube's axes are compared where both opposite faces are seen: the vertical extent (the bottom face on
+    the ground, Gaussians reaching out from the top face only) is not comparable and is left out; a cube stretched
+    along one horizontal axis is still caught."""
+    from plantsplat.traits.cube_fit import use_envelope
+
+    rng = np.random.default_rng(3)
+    pts = cube_surface_points(10.0, 9000, rng, faces=CUBE_FACES)
+    reach = rng.normal(0.0, 0.1, pts.shape)  # the Gaussians' extents reach out on every side...
+    reach[:, 2] = np.where(pts[:, 2] > 9.99, np.abs(reach[:, 2]), 0.0)  # ...but not below the ground
+    cloud = pts + reach
+    cloud[pts[:, 2] > 9.99, 2] -= 0.3  # the top face drawn 3 mm low, as on the demo
+    fit = use_envelope(fit_cube_planes(cloud, size_hint=10.0), cloud)
+    vertical = int(np.argmax(np.abs(fit.axes[:, 2])))
+    assert fit.extra["edge_per_axis_planes"][vertical] is None
+    horizontal = [e for i, e in enumerate(fit.edge_per_axis) if i != vertical]
+    assert (max(horizontal) - fit.edge_per_axis[vertical]) / fit.edge > 0.03  # the old three-axis check fired
+    assert fit.axis_spread() < 0.01
+    stretched = cloud * [1.06, 1.0, 1.0]
+    fit = use_envelope(fit_cube_planes(stretched, size_hint=10.0), stretched)
+    assert fit.axis_spread() == pytest.approx(0.058, abs=0.01)
 
 
 def test_scale_disagreement_is_reported_and_flagged():

@@ -185,3 +185,29 @@ def marker_image(marker_id: int, pixels: int, cube: CubeSpec = CubeSpec()) -> np
     import cv2  # deferred: OpenCV is slow to load, and the CLI imports this module (for CubeSpec)
 
     return cv2.aruco.generateImageMarker(cube.aruco_dictionary(), int(marker_id), int(pixels), borderBits=1)
+
+
+def cube_surface_points(
+    size: float,
+    n: int,
+    rng: np.random.Generator,
+    faces: tuple[str, ...] = FACE_NAMES,
+    noise: float = 0.0,
+) -> np.ndarray:
+    """Uniform samples on the given faces of a cube in the cube frame (bottom face centred on the
+    origin, +z up), with optional isotropic Gaussian noise of std ``noise``. ``[n, 3]``.
+
+    Used by the tests and benchmarks as a known cube; it is not part of the measurement.
+    """
+    spec = CubeSpec(size=size, marker_size=size)
+    per = np.full(len(faces), n // len(faces))
+    per[: n - per.sum()] += 1
+    out = []
+    for face, m in zip(faces, per):
+        c, _, r, u = spec.face_frame(face)
+        ab = rng.uniform(-size / 2, size / 2, (m, 2))
+        out.append(c + ab[:, :1] * r + ab[:, 1:] * u)
+    pts = np.concatenate(out)
+    if noise > 0:
+        pts = pts + rng.normal(0, noise, pts.shape)
+    return pts

@@ -106,8 +106,9 @@ class MeasureConfig:
     with."""
 
     cube_axes_tolerance: float = 0.03
-    """Flag the result when the cube's edges measured along its three axes differ by more than this share of their
-    mean: the cube is distorted in the reconstruction."""
+    """Flag the result when the cube's edges between opposite faces differ from one axis to another by more than this
+    share of their mean (the axes whose two faces are both seen: :meth:`plantsplat.traits.cube_fit.CubeFit.axis_spread`):
+    the cube is distorted in the reconstruction."""
     below_ground_quantile: float = 0.9
     """A cluster is under the ground when it lies wholly below z = 0, or this quantile of its heights lies more than a
     centimetre below it (the Gaussians' ends reach a little under what they draw)."""

@@ -23,7 +23,7 @@ Fruit are counted and joined by :mod:`plantsplat.traits.fruit`.
 
 Example:
     >>> import numpy as np
-    >>> from plantsplat.traits.cube_fit import cube_surface_points
+    >>> from plantsplat.cube import cube_surface_points
     >>> rng = np.random.default_rng(0)
     >>> cube = cube_surface_points(10.0, 6000, rng, faces=("+x", "-x", "+y", "-y", "top"))
     >>> plant = rng.uniform([-8, -6, 5], [8, 6, 20], (20000, 3)) + [25, 0, 0]
@@ -164,13 +164,14 @@ def _cube_scale(cube_fit, size: float, edge_method: str, camera_centres, reasons
 
 
 def _check_cube_axes(cube_fit, scale: dict, calibrated: bool, reasons: list[str]) -> None:
-    measured = [e for e in cube_fit.edge_per_axis if e is not None]
     k = 1.0 if calibrated else scale["scale"]
     scale["cube_edge_cm_per_axis"] = [None if e is None else e * k for e in cube_fit.edge_per_axis]
-    if len(measured) > 1 and (max(measured) - min(measured)) / np.mean(measured) > SETTINGS.cube_axes_tolerance:
-        reasons.append(f"the cube's edges measured along different axes differ by more than "
-                       f"{100 * SETTINGS.cube_axes_tolerance:.0f} %: the cube is "
-                       "distorted in the reconstruction")
+    spread = cube_fit.axis_spread()
+    scale["cube_axis_spread"] = spread
+    if spread is not None and spread > SETTINGS.cube_axes_tolerance:
+        reasons.append(f"the cube's edges between opposite faces differ by {100 * spread:.1f} % from one axis to "
+                       f"another (more than {100 * SETTINGS.cube_axes_tolerance:.0f} %): the cube is distorted in "
+                       "the reconstruction")
 
 
 def _clusters_below_ground(pts_cm, labels, excl: set) -> list[int]:
