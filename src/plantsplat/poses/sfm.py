@@ -350,10 +350,9 @@ def merge_models(models: list, db: Path, image_dir: Path, work_dir: Path, opts: 
     return retriangulate(base, poses, db, image_dir, work_dir, opts)
 
 
-def final_ba_options(refine_distortion: bool, num_threads: int, loss_scale_px: float, iterations: int):
-    """COLMAP's options for a bundle adjustment of a mapped model: focal length refined (the lens distortion too with
-    ``refine_distortion``), principal point fixed, and a Cauchy loss of scale ``loss_scale_px`` on each reprojection
-    error, so that the few matches left off by pixels do not pull the focal length and the cameras."""
+def ba_options(refine_distortion: bool, num_threads: int):
+    """COLMAP's options for a bundle adjustment of a mapped model on the CPU: focal length refined (the lens distortion
+    too with ``refine_distortion``), principal point fixed, no summary printed."""
     import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     opts = pycolmap.BundleAdjustmentOptions()
@@ -362,9 +361,18 @@ def final_ba_options(refine_distortion: bool, num_threads: int, loss_scale_px: f
     opts.refine_principal_point = False
     opts.print_summary = False
     opts.ceres.use_gpu = False
+    opts.ceres.solver_options.num_threads = num_threads
+    return opts
+
+
+def final_ba_options(refine_distortion: bool, num_threads: int, loss_scale_px: float, iterations: int):
+    """:func:`ba_options` with a Cauchy loss of scale ``loss_scale_px`` on each reprojection error, so that the few
+    matches left off by pixels do not pull the focal length and the cameras, and at most ``iterations`` iterations."""
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
+
+    opts = ba_options(refine_distortion, num_threads)
     opts.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
     opts.ceres.loss_function_scale = loss_scale_px
-    opts.ceres.solver_options.num_threads = num_threads
     opts.ceres.solver_options.max_num_iterations = iterations
     return opts
 
@@ -391,13 +399,7 @@ def retriangulate(like, poses: dict, db: Path, image_dir: Path, work_dir: Path, 
     o.random_seed = opts.seed
     o.triangulation.random_seed = opts.seed
     pycolmap.set_random_seed(opts.seed)
-    ba = pycolmap.BundleAdjustmentOptions()
-    ba.refine_focal_length = True
-    ba.refine_extra_params = True
-    ba.refine_principal_point = False
-    ba.print_summary = False
-    ba.ceres.use_gpu = False
-    ba.ceres.solver_options.num_threads = MAP_THREADS
+    ba = ba_options(True, MAP_THREADS)
     with colmap_logging(opts.verbose):
         rec = pycolmap.triangulate_points(rec, db, image_dir, work_dir, clear_points=True, options=o,
                                           refine_intrinsics=True)
