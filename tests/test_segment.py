@@ -163,7 +163,8 @@ def test_a_soil_drawn_as_a_thick_layer_is_a_band(tmp_path):
     assert pot.soil_seen and abs(pot.soil_z - 10.5) <= 0.25 and abs(pot.soil_bottom - 9.5) <= 0.25
     assert pot.contains(np.array([[25.0, 10.0, 10.9]]), margin=0.5).all()  # the whole band is pot, not plant
 
-    ws = SimpleNamespace(segment_json=tmp_path / "segment.json")  # a workspace whose segment stage found that pot
+    # a workspace whose segment stage found that pot, without SfM points (where they are, their layer is the soil)
+    ws = SimpleNamespace(segment_json=tmp_path / "segment.json", sparse_points_ply=tmp_path / "sparse_points.ply")
     ws.segment_json.write_text(json.dumps({"capture": {"object": {"pot": pot.summary()}}}))
     z, _, disc, band = workspace_soil(ws, calibrated=True)
     assert disc is None and z == pytest.approx((pot.soil_z + pot.soil_bottom) / 2)

@@ -38,9 +38,11 @@ def _line(rng, a, b, n, jitter=0.05):
     return a + t * (np.asarray(b) - a) + rng.normal(0, jitter, (n, 3))
 
 
-def make_plant_scene(seed=0, floaters=True, separated_leaf=True, noise=0.0):
+def make_plant_scene(seed=0, floaters=True, separated_leaf=True, noise=0.0, stretch=1.0):
     """A plant-like cloud (petioles, leaf blades, red fruit) on a 12 cm pot (pot not in the cloud),
-    a noisy cube beside it, floaters, and one leaf whose petiole is missing.
+    a noisy cube beside it, floaters, and one leaf whose petiole is missing. Its seven leaves spread evenly
+    around the crown (a nearly round crown: the widths' axes are not fixed by it); ``stretch`` > 1 reaches the
+    leaves that much farther along x (an elongated crown).
 
     Returns (points [N, 3], colors [N, 3] uint8, plant_mask [N] bool) in the calibrated frame (cm,
     z up, cube bottom centred on the origin).
@@ -59,7 +61,8 @@ def make_plant_scene(seed=0, floaters=True, separated_leaf=True, noise=0.0):
         az = 2 * np.pi * i / n_leaves + rng.uniform(-0.2, 0.2)
         el = np.radians(rng.uniform(35, 70))
         L = rng.uniform(9, 15) * (1.3 if i % 3 == 0 else 1.0)
-        d = np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
+        d = np.array([np.cos(az) * np.cos(el) * stretch, np.sin(az) * np.cos(el), np.sin(el)])
+        L, d = L * np.linalg.norm(d), d / np.linalg.norm(d)
         blade_c = crown + d * L
         pet = _line(rng, crown, blade_c, 500)
         if separated_leaf and i == 3:
@@ -401,7 +404,7 @@ def test_extent_sampling_from_splat_ply(tmp_path):
     from plantsplat.cli import main
     from plantsplat.ply import write_splat as write_splat_ply
 
-    pts, cols, plant = make_plant_scene(seed=10, floaters=False)
+    pts, cols, plant = make_plant_scene(seed=10, floaters=False, stretch=1.5)
     keep = np.arange(len(pts)) % 3 == 0  # 7 points per Gaussian: keep the cloud small
     pts, cols, plant = pts[keep], cols[keep], plant[keep]
     n = len(pts)
@@ -563,6 +566,28 @@ def test_nothing_under_the_ground_or_in_the_cube_is_plant():
                                                     rel=0.03)
 
 
+def test_a_piece_of_the_plant_on_the_cube_s_side_is_plant_and_a_piece_of_a_face_is_not():
+    """Synthetic demo seed 404 (2026-11-27): fruit and leaves hanging over the pot's rim on the cube's side, 8-9 cm from
+    the cube, were nearer it than the plant's upper body and left out as pieces of the cube (height extent -11 %,
+    volume -20 %). A piece of the cube lies on its faces; what hangs centimetres out is the plant's."""
+    pts, cols, plant = make_plant_scene(seed=6, floaters=False, separated_leaf=False)
+    rng = np.random.default_rng(6)
+    s = rng.normal(size=(600, 3))
+    fruit = np.array([13.0, 3.0, 5.0]) + 1.2 * s / np.linalg.norm(s, axis=1, keepdims=True)  # 8 cm from the cube's +x face
+    face = rng.uniform([5.6, -2.0, 3.0], [6.4, -0.5, 4.5], (300, 3))  # a piece of that face, drawn 1 cm outside it
+    body = pts[plant]
+    to_box = 13.0 - 1.2 - 5.0
+    assert np.min(np.linalg.norm(body - fruit.mean(axis=0), axis=1)) > to_box  # nearer the cube than the plant
+    P = np.concatenate([pts, fruit, face])
+    C = np.concatenate([cols, np.tile(np.array([200, 20, 30], np.uint8), (len(fruit), 1)),
+                        np.full((len(face), 3), 230, np.uint8)])
+    res = measure_traits(P, C, calibrated=True)
+    got = {tuple(p) for p in res.plant_points.round(6)}
+    assert all(tuple(p) in got for p in fruit.round(6))
+    assert not any(tuple(p) in got for p in face.round(6))
+    assert res.traits["height_extent_cm"] == pytest.approx(body[:, 2].max() - fruit[:, 2].min(), abs=0.05)
+
+
 def test_height_is_measured_from_the_soil():
     """A ruler on the soil: fruit hanging over the rim do not change the height; the paper's extent is kept."""
     pts, cols, plant = make_plant_scene(seed=3, floaters=False)
@@ -592,7 +617,7 @@ def _measured_workspace(tmp_path, pts, cols, segment_confidence: list[float] | N
 def test_a_result_failing_its_checks_is_written_marked_and_exits_4(tmp_path, capsys):
     from plantsplat.cli import main
 
-    pts, cols, _ = make_plant_scene(seed=4, floaters=False)
+    pts, cols, _ = make_plant_scene(seed=4, floaters=False, stretch=1.5)
     ws = _measured_workspace(tmp_path, pts, cols, [0.9] * 20, pot_soil=11.0)
     assert main(["traits", str(ws), "--no-figure"]) == 0
     good = json.loads((ws / "traits.json").read_text())
@@ -616,7 +641,7 @@ def test_the_height_is_judged_by_bounds_found_apart_from_it(tmp_path):
     No pot (a plant in the ground): the extent, ok."""
     from plantsplat.traits.stage import run as traits_workspace
 
-    pts, cols, plant = make_plant_scene(seed=4, floaters=False)
+    pts, cols, plant = make_plant_scene(seed=4, floaters=False, stretch=1.5)
     P = pts[plant]
     crown, low, top = P[np.argmin(P[:, 2])], float(P[:, 2].min()), float(P[:, 2].max())
     rim = {"centre_cm": crown[:2].tolist(), "rim_radius_cm": 8.0, "rim_z_cm": low + 1.0}
@@ -640,6 +665,42 @@ def test_the_height_is_judged_by_bounds_found_apart_from_it(tmp_path):
     ground = traits_workspace(_measured_workspace(tmp_path / "ground", pts, cols, [0.9] * 20), figure=False)
     assert ground["quality"] == "ok" and "soil_interval_cm" not in ground
     assert ground["height_bounds_cm"] == pytest.approx([top - low] * 2, abs=1e-3)
+
+
+def test_widths_along_axes_the_crown_does_not_fix_are_a_warning_with_their_bounds(tmp_path):
+    """Synthetic demo seed 404 (2026-11-27): a nearly round crown, whose PCA axes turned 67 degrees from the truth's,
+    gave width 1 25 % wide as `ok`. Four equal leaves at right angles, two of them sampled three times as densely: the
+    widths come with bounds that cover every direction, and a warning; the same leaves made elongated are `ok`."""
+    from plantsplat.traits.stage import run as traits_workspace
+
+    rng = np.random.default_rng(7)
+    cube = cube_surface_points(10.0, 6000, rng, faces=CUBE_FACES)
+
+    def crown(lengths, dense_x):
+        leaves = []
+        for a, L in zip((0, 90, 180, 270), lengths):
+            n = 1500 * (dense_x if a in (0, 180) else 1)
+            c, s = np.cos(np.radians(a)), np.sin(np.radians(a))
+            u, v = np.array([c, s]), np.array([-s, c])
+            t, w = rng.uniform(0, L, n), rng.uniform(-1.5, 1.5, n)
+            leaves.append(np.column_stack([[30.0, 5.0] + np.outer(t, u) + np.outer(w, v), 12.0 + 0.3 * t]))
+        stem = np.column_stack([np.full(200, 30.0), np.full(200, 5.0), np.linspace(2.0, 12.0, 200)])
+        pts = np.concatenate(leaves + [stem, cube])
+        return pts, np.tile(np.array([50, 110, 40], np.uint8), (len(pts), 1))
+
+    round_ = traits_workspace(_measured_workspace(tmp_path / "round", *crown((15, 15, 15, 15), 3), [0.9] * 20),
+                              figure=False)
+    assert round_["width_axis_turn_deg"] > 40.0  # the even sample has no major axis: 45 degrees and more
+    assert round_["quality"] == "warning"
+    assert [c["name"] for c in round_["checks"] if not c["passed"]] == ["width_bounds_reach_share"]
+    lo, hi = round_["width1_bounds_cm"]
+    assert lo < 0.8 * round_["width1_cm"] and hi == pytest.approx(round_["width1_cm"], rel=0.01)
+    long = traits_workspace(_measured_workspace(tmp_path / "long", *crown((22, 7, 22, 7), 3), [0.9] * 20), figure=False)
+    assert long["quality"] == "ok", long["quality_reasons"]
+    assert long["width_axis_turn_deg"] < 5.0
+    for k in ("width1", "width2"):
+        lo, hi = long[f"{k}_bounds_cm"]
+        assert lo <= long[f"{k}_cm"] <= hi and max(long[f"{k}_cm"] - lo, hi - long[f"{k}_cm"]) < 0.05 * long[f"{k}_cm"]
 
 
 def test_height_bounds_widen_with_the_scale_error():

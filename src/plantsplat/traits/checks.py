@@ -36,8 +36,10 @@ from plantsplat.checks import Check
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_json
 from plantsplat.log import get_logger
-from plantsplat.segment.object3d import find_pot, orbit_axis
+from plantsplat.ply import read_point_cloud
+from plantsplat.segment.object3d import POT_SLAB_CM, find_pot, orbit_axis
 from plantsplat.train.data import load_scene
+from plantsplat.traits.soil import soil_layer
 
 log = get_logger(__name__)
 
@@ -73,6 +75,11 @@ class QualityThresholds:
     the plant's lowest point in the pot, and that point is not evidence enough: on foreign renders 101 and 104
     (2026-11-27) soil and stray Gaussians in the pot taken for plant put it 0.9-3.3 cm under the true soil, and
     the heights from it came out 3-13 % tall."""
+    width_bounds_reach_warn: float = 0.05
+    """warn: a width's bounds (how far its PCA axes can turn with the sampling, and the scale's error) reach farther
+    than this share of it from it: the width may be more than 5 % off. A warning, not a failure: a nearly round crown
+    is measured right in every direction, only which directions its widths are taken along is not fixed by it
+    (:mod:`plantsplat.traits.widths`)."""
     top_short_share: float = 0.05
     """fail: the measured plant's top lies lower than the top of the plant the segment stage decided in 3D by more
     than this share of the height: a part of the plant was lost between the two, and the height falls short with it
@@ -93,47 +100,74 @@ class QualityThresholds:
 def workspace_soil(ws, calibrated: bool) -> tuple[float | None, str, tuple | None, float]:
     """The soil surface's height (cm, cube frame), where it comes from, the pot's inner disc ``(centre xy, radius)``
     when the soil was not seen and the rim stands for it (then the plant's lowest point inside the pot bounds it:
-    nothing of the plant grows below the soil), and how thick the band it was seen in is (cm; 0 for one slab or
-    unseen). A soil seen as a band of slabs is taken at the band's middle. ``(None, why, None, 0.0)`` when there is
-    no pot.
+    nothing of the plant grows below the soil), and how thick the band it was seen in is (cm; 0 for one layer or
+    unseen). ``(None, why, None, 0.0)`` when there is no pot.
 
-    The segment stage's pot (found as rings in its quick 3D model) gives it; without that (imported masks)
-    the pot is looked for among the poses stage's SfM points.
+    The pot is the segment stage's (found as rings in its quick 3D model), or without that (imported masks) the one
+    found among the poses stage's SfM points. In it, the soil is the layer of SfM points
+    (:func:`plantsplat.traits.soil.soil_layer`); where SfM saw none, the band of slabs the quick model covers the
+    pot's inside with (taken at its middle), and where that did not see it either, the rim bounds it.
     """
     if not calibrated:
         return None, "none: the cloud is not calibrated, so the height is the plant's extent", None, 0.0
-    if ws.segment_json.is_file():
-        pot = (((read_json(ws.segment_json).get("capture") or {}).get("object") or {}).get("pot")) or {}
-        if pot.get("soil_z_cm") is not None:
-            return _soil_of(pot["soil_z_cm"], pot.get("soil_bottom_z_cm", pot["soil_z_cm"]), pot.get("rim_z_cm", np.inf),
-                            pot.get("centre_cm"), pot.get("rim_radius_cm"), "the pot the segment stage found in 3D")
-    pot = _pot_from_sfm(ws)
-    if pot is not None:
-        return _soil_of(pot.soil_z, pot.soil_bottom, pot.rim_z, pot.centre, pot.radii[-1], "the pot found among the SfM points")
-    return None, "no pot found: the height is the plant's extent (a plant in the ground)", None, 0.0
+    sfm = _sfm_points(ws)
+    pot = _segment_pot(ws) or _pot_from_sfm(ws, sfm)
+    if pot is None:
+        return None, "no pot found: the height is the plant's extent (a plant in the ground)", None, 0.0
+    layer = None
+    if sfm is not None and pot["centre"] is not None and pot["radius"] is not None and np.isfinite(pot["rim"]):
+        layer = soil_layer(sfm, np.asarray(pot["centre"], float), float(pot["radius"]), float(pot["rim"]),
+                           slab=POT_SLAB_CM)
+    if layer is not None:
+        return layer.z, f"{pot['source']}; soil: the layer of {layer.points} SfM points in it", None, 0.0
+    return _soil_of(pot["soil"], pot["bottom"], pot["rim"], pot["centre"], pot["radius"], pot["source"])
+
+
+def _segment_pot(ws) -> dict | None:
+    """The pot the segment stage recorded in ``segment.json`` (soil, band bottom, rim, centre, radius, source), or
+    None."""
+    if not ws.segment_json.is_file():
+        return None
+    pot = (((read_json(ws.segment_json).get("capture") or {}).get("object") or {}).get("pot")) or {}
+    if pot.get("soil_z_cm") is None:
+        return None
+    return {"soil": pot["soil_z_cm"], "bottom": pot.get("soil_bottom_z_cm", pot["soil_z_cm"]),
+            "rim": pot.get("rim_z_cm", np.inf), "centre": pot.get("centre_cm"), "radius": pot.get("rim_radius_cm"),
+            "source": "the pot the segment stage found in 3D"}
+
+
+def _sfm_points(ws) -> np.ndarray | None:
+    """The poses stage's SfM points (cm, cube frame) ``[P, 3]``, or None without them."""
+    if not ws.sparse_points_ply.is_file():
+        return None
+    pts = read_point_cloud(ws.sparse_points_ply)["xyz"]
+    return pts if len(pts) >= MIN_SFM_POINTS else None
 
 
 def _soil_of(soil_z: float, bottom: float, rim_z: float, centre, rim_radius, source: str
              ) -> tuple[float, str, tuple | None, float]:
-    """:func:`workspace_soil`'s answer for a pot: the soil (the middle of the band from ``soil_z`` down to ``bottom``
-    it was seen in), its source, the pot's inner disc when the rim stood for an unseen soil, and the band's
-    thickness."""
+    """:func:`workspace_soil`'s answer from the quick model's pot: the soil (the middle of the band from ``soil_z`` down
+    to ``bottom`` it was seen in), its source, the pot's inner disc when the rim stood for an unseen soil, and the
+    band's thickness."""
     if soil_z < rim_z:
         return (soil_z + bottom) / 2, source, None, float(soil_z - bottom)
     disc = (np.asarray(centre, float), SOIL_DISC_SHARE * float(rim_radius))
     return float(soil_z), source + " (soil not seen: at most the rim)", disc, 0.0
 
 
-def _pot_from_sfm(ws):
-    """The pot (:class:`plantsplat.segment.object3d.Pot`) found among the poses stage's SfM points, or None."""
+def _pot_from_sfm(ws, sfm: np.ndarray | None) -> dict | None:
+    """The pot (as :func:`_segment_pot` gives it) found among the poses stage's SfM points ``sfm``, or None."""
+    if sfm is None:
+        return None
     try:
         scene = load_scene(ws, need_masks=False, load_images=False)
     except PlantsplatError:
         return None
-    if len(scene.points) < MIN_SFM_POINTS:
+    found = find_pot(sfm, orbit_axis([np.linalg.inv(v.viewmat) for v in scene.views])[:2])
+    if found is None:
         return None
-    axis = orbit_axis([np.linalg.inv(v.viewmat) for v in scene.views])
-    return find_pot(scene.points, axis[:2])
+    return {"soil": found.soil_z, "bottom": found.soil_bottom, "rim": found.rim_z, "centre": found.centre,
+            "radius": found.radii[-1], "source": "the pot found among the SfM points"}
 
 
 def stage_checks(ws, t: QualityThresholds = QualityThresholds()) -> list[Check]:
@@ -170,12 +204,15 @@ def stage_checks(ws, t: QualityThresholds = QualityThresholds()) -> list[Check]:
 def result_checks(traits: dict, plant_points: int, plant_top_cm: float | None, camera_top_cm: float | None,
                   cube_cm: float, t: QualityThresholds = QualityThresholds(),
                   height_bounds: tuple[float, float] | None = None, soil=None,
-                  decided_top_cm: float | None = None) -> list[Check]:
+                  decided_top_cm: float | None = None, width_bounds: tuple | None = None,
+                  width_turn_deg: float | None = None) -> list[Check]:
     """Checks of the measurement itself (see the module docstring); heights in the calibrated frame (cm);
     ``cube_cm``: the edge of the cube the poses stage measured with. ``height_bounds``: the height's bounds
     (:mod:`plantsplat.traits.height`), found independently of the height itself; ``soil``: the soil's
     :class:`~plantsplat.traits.height.SoilInterval` (None: no pot, the height is the plant's extent);
-    ``decided_top_cm``: the top of the plant the segment stage decided in its quick model (None: not known)."""
+    ``decided_top_cm``: the top of the plant the segment stage decided in its quick model (None: not known);
+    ``width_bounds``: ``(width 1's, width 2's)`` bounds and ``width_turn_deg`` how far their axes can turn
+    (:mod:`plantsplat.traits.widths`)."""
     out = [Check("plant_points", plant_points, t.plant_points, ">=", "points on the plant after clustering")]
     h = traits.get("height_cm")
     if height_bounds is not None and h:
@@ -184,6 +221,7 @@ def result_checks(traits: dict, plant_points: int, plant_top_cm: float | None, c
                 f"(soil {'none: the extent' if soil is None else soil.how})")
         out.append(Check("height_interval_share", share, t.height_interval_fail, "<=", what))
         out.append(Check("height_interval_share_warn", share, t.height_interval_warn, "<=", what, severity="warn"))
+    out += _width_checks(traits, width_bounds, width_turn_deg, t)
     if soil is not None and soil.into_pot is not None:
         out.append(Check("plant_base_into_pot_cm", soil.into_pot, t.base_into_pot_cm, ">=",
                          "soil not seen: how far the plant's lowest point reaches below the pot's rim (its base "
@@ -203,3 +241,15 @@ def result_checks(traits: dict, plant_points: int, plant_top_cm: float | None, c
                          "<=", "how far the measured top lies below the top of the plant the segment stage decided "
                          "in 3D, against the height (a part of the plant lost between them)"))
     return out
+
+
+def _width_checks(traits: dict, bounds: tuple | None, turn_deg: float | None, t: QualityThresholds) -> list[Check]:
+    """How far the widths' bounds reach from the widths, against them (the larger of the two shares), a warning."""
+    if not bounds or None in bounds or not traits.get("width1_cm") or not traits.get("width2_cm"):
+        return []
+    shares = [max(traits[k] - b[0], b[1] - traits[k]) / traits[k] for b, k in zip(bounds, ("width1_cm", "width2_cm"))]
+    (lo1, hi1), (lo2, hi2) = bounds
+    what = (f"how far the widths' bounds (width 1 {lo1:.1f}-{hi1:.1f} cm, width 2 {lo2:.1f}-{hi2:.1f} cm) reach from them: "
+            f"the crown's axes can turn by {turn_deg or 0:.0f} degrees with how its surface is sampled (a nearly "
+            "round crown)")
+    return [Check("width_bounds_reach_share", max(shares), t.width_bounds_reach_warn, "<=", what, severity="warn")]

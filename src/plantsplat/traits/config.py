@@ -115,6 +115,12 @@ class MeasureConfig:
     fragment_ratio: int = 20
     """A cluster nearer the cube's box than the plant's body is a piece of the cube when it holds less than 1/this of
     the body's points."""
+    fragment_reach: float = 0.25
+    """A cluster is a piece of the cube only when its median point lies within this share of the cube's edge of the
+    cube's box (2.5 cm for the 10 cm cube): the cube's Gaussians draw its faces, not the air around it."""
+    even_cell_cm: float = 0.5
+    """Cell of the grid the plant is resampled evenly on to see how far its PCA axes turn with the sampling (the
+    widths' bounds, :mod:`plantsplat.traits.widths`)."""
     body_sample: int = 20000
     """The plant body's points that cube fragments are compared with: a random subset of at most this many."""
     min_plant_points: int = 50

@@ -4,7 +4,8 @@ It reads the exported model (``WS/export/splat.ply``, the Gaussians with their e
 ``WS/export/points.ply``, their centres), the poses stage's calibration and cube, the segment stage's
 pot and the other stages' records for their checks; it writes ``WS/traits.json``, ``traits.csv`` and
 ``traits.png``. The measurement itself is :func:`plantsplat.traits.measure.measure_traits`; the
-verdict, :mod:`plantsplat.traits.checks`; the height's bounds, :mod:`plantsplat.traits.height`.
+verdict, :mod:`plantsplat.traits.checks`; the height's bounds, :mod:`plantsplat.traits.height`; the widths',
+:mod:`plantsplat.traits.widths`.
 
 Usage:
     from plantsplat.traits import stage
@@ -30,11 +31,12 @@ from plantsplat.markers import recorded_cube
 from plantsplat.ply import is_splat, read_point_cloud, read_splat_extent_cloud
 from plantsplat.segment.object3d import POT_SLAB_CM
 from plantsplat.traits.checks import result_checks, stage_checks, workspace_soil
-from plantsplat.traits.config import ROBUST_KEYS, TraitsConfig, cube_edge_cm
+from plantsplat.traits.config import ROBUST_KEYS, MeasureConfig, TraitsConfig, cube_edge_cm
 from plantsplat.traits.figures import traits_figure
 from plantsplat.traits.height import height_bounds, soil_interval
 from plantsplat.traits.measure import measure_traits
 from plantsplat.traits.result import TraitResult
+from plantsplat.traits.widths import axis_turn_deg, width_bounds
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
@@ -143,6 +145,7 @@ def run(ws, cfg=None, *, points_path: str | Path | None = None, calibrated: bool
         se = (read_json(ws.poses_json).get("scale_uncertainty") or {}).get("relative_se")
         out["scale"]["standard_error_pct"] = None if se is None else round(100.0 * se, 3)  # the cube's, from poses
     soil = _height_bounds(out, res, soil_z if calibrated else None, soil_disc, se, soil_band)
+    _width_bounds(out, res, se)
     _judge(out, res, ws, cams if calibrated else None, soil, cube_edge_cm(s, cube))
     write_json_atomic(ws.traits_json, out)
     write_text_atomic(ws.traits_csv, traits_csv_text(out, ws.root.name))
@@ -174,6 +177,19 @@ def _height_bounds(out: dict, res: TraitResult, soil_z: float | None, disc: tupl
     return soil
 
 
+def _width_bounds(out: dict, res: TraitResult, scale_se: float | None) -> None:
+    """How far the widths' PCA axes can turn and the widths' bounds (:mod:`plantsplat.traits.widths`) into ``out``
+    (``width_axis_turn_deg``, ``width1_bounds_cm``, ``width2_bounds_cm``)."""
+    P = res.plant_points
+    if P is None or len(P) < 3 or out.get("width1_cm") is None:
+        return
+    turn = axis_turn_deg(P, MeasureConfig().even_cell_cm)
+    (lo1, hi1), (lo2, hi2) = width_bounds(P, turn, scale_se)
+    out["width_axis_turn_deg"] = round(turn, 1)
+    out["width1_bounds_cm"] = [round(lo1, 3), round(hi1, 3)]
+    out["width2_bounds_cm"] = [round(lo2, 3), round(hi2, 3)]
+
+
 def _decided_top(ws) -> float | None:
     """The top of the plant the segment stage decided in its quick model (cm, cube frame; ``segment.json``), or None."""
     if not ws.segment_json.is_file():
@@ -190,6 +206,8 @@ def _judge(out: dict, res: TraitResult, ws, cams: np.ndarray | None, soil, cube_
         checks += result_checks(res.traits, len(res.plant_points), top if cams is not None else None,
                                 None if cams is None else float(cams[:, 2].max()), cube_cm,
                                 height_bounds=out.get("height_bounds_cm"), soil=soil,
+                                width_bounds=(out.get("width1_bounds_cm"), out.get("width2_bounds_cm")),
+                                width_turn_deg=out.get("width_axis_turn_deg"),
                                 decided_top_cm=_decided_top(ws) if cams is not None else None)
     out["checks"] = [c.as_dict() for c in checks]
     verdict = quality(checks)

@@ -1,0 +1,79 @@
+"""The soil surface in a pot from the poses stage's SfM points: the lowest layer in the pot as dense as a surface.
+
+Structure from motion triangulates a point only where several frames see the same texture, and puts it
+at the depth those frames agree on. Soil is textured, so wherever it shows between the leaves (from the
+high ring of cameras, looking down into the pot) its points gather in one thin horizontal layer; the
+quick scene model, fitted to the images alone, draws the same soil as a layer 1-1.5 cm thick at grazing
+angles (2026-11-27: on foreign render 110 its layer began at the rim, 1.9 cm above the true soil, while
+the SfM points inside the pot peaked within 0.15 cm of it; the same held on all twelve benchmark captures,
+among them one whose soil the quick model did not see at all).
+
+Inside the pot (within ``inner`` of the rim's radius, below the rim), the points are counted in windows
+one ``slab`` thick, stepped by a quarter of it. Nothing of the plant grows below the soil, and what SfM
+puts under it (a few points seen through gaps, matched wrongly) is sparse: the soil is the lowest window
+that holds at least ``share`` of the densest window's points (leaves and the crown above it are layers too,
+some denser than the soil's few visible patches). Its height is the median of the points of the densest window
+overlapping that one (the layer's peak). A surface filling the pot spreads over its inside (the RMS distance of
+its points from the axis is 0.71 of the inside's radius for an even layer; 0.60-0.79 on the twelve captures),
+while what stands on the soil where the leaves hide it, the crown and the petioles' feet, gathers near the axis:
+a lowest layer that spreads less than ``spread`` is not the soil, and the soil was not seen.
+
+Example:
+    >>> rng = np.random.default_rng(0)
+    >>> soil = np.c_[rng.uniform(-4, 4, (300, 2)), rng.normal(10.0, 0.05, 300)]  # the soil, 10 cm up
+    >>> leaves = np.c_[rng.uniform(-4, 4, (400, 2)), rng.uniform(10.5, 14.0, 400)]  # leaves above it
+    >>> noise = np.c_[rng.uniform(-4, 4, (10, 2)), rng.uniform(6.0, 9.5, 10)]  # stray points under it
+    >>> layer = soil_layer(np.concatenate([soil, leaves, noise]), np.zeros(2), rim_radius=6.0, rim_z=13.0)
+    >>> round(layer.z, 1), layer.points > 250
+    (10.0, True)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+LAYER_SHARE = 0.5
+"""The soil's window holds at least this share of the densest window's points."""
+LAYER_SPREAD = 0.5
+"""The soil's layer spreads over the pot's inside: its points' RMS distance from the axis is at least this share of
+the inside's radius."""
+MIN_LAYER_POINTS = 10
+"""A window of fewer SfM points than this is not a surface (the soil was not seen)."""
+
+
+@dataclass(frozen=True)
+class SoilLayer:
+    """The soil found among the SfM points: its height ``z`` (cm) and how many points lie in its layer."""
+
+    z: float
+    points: int
+
+
+def soil_layer(points: np.ndarray, centre: np.ndarray, rim_radius: float, rim_z: float, slab: float = 0.5,
+               depth: float = 6.0, inner: float = 0.8, share: float = LAYER_SHARE, spread: float = LAYER_SPREAD,
+               min_points: int = MIN_LAYER_POINTS) -> SoilLayer | None:
+    """The soil in a pot (axis at ``centre`` ``[2]``, rim of ``rim_radius`` at ``rim_z``, cm) from SfM ``points``
+    ``[N, 3]`` in the cube frame: the lowest window ``slab`` cm thick, within ``depth`` below the rim, holding at least
+    ``share`` of the densest window's points and at least ``min_points``, its points spread from the axis by at least
+    ``spread`` of the inside's radius (see the module docstring); None when there is no such window."""
+    rin = inner * rim_radius
+    d = np.linalg.norm(points[:, :2] - np.asarray(centre, float), axis=1)
+    keep = (d < rin) & (points[:, 2] < rim_z) & (points[:, 2] >= rim_z - depth)
+    order = np.argsort(points[keep, 2], kind="stable")
+    z, r = points[keep, 2][order], d[keep][order]
+    if len(z) < min_points:
+        return None
+    starts = np.arange(rim_z - depth, rim_z - slab + 1e-9, slab / 4)
+    counts = np.searchsorted(z, starts + slab) - np.searchsorted(z, starts)  # [W] points in each window
+    need = max(min_points, share * counts.max())
+    dense = np.flatnonzero(counts >= need)
+    if not len(dense):
+        return None
+    first = dense[0]
+    lo = starts[first + int(np.argmax(counts[first:first + 5]))]  # the layer's peak: the densest window overlapping it
+    inside = (z >= lo) & (z < lo + slab)
+    if np.sqrt(np.mean(r[inside] ** 2)) < spread * rin:
+        return None  # the crown and the petioles' feet, standing on a soil no frame saw
+    return SoilLayer(z=float(np.median(z[inside])), points=int(inside.sum()))
