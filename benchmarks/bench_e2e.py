@@ -224,8 +224,10 @@ def main() -> int:
     if args.demo:
         v["demo"] = demo_verdict(demo_rows)
     info["loadavg_end"] = list(os.getloadavg())
+    mode = (f"traits only: `plantsplat traits` re-run on the workspaces kept in {args.work}" if args.traits_only
+            else "full: `plantsplat run` / `plantsplat demo` from the video")
     write_json_atomic(args.out, {"benchmark": "e2e", "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-                                 "machine": info, "verdict": v, "runs": rows})
+                                 "mode": mode, "machine": info, "verdict": v, "runs": rows})
     print(json.dumps(v, indent=1))
     return 0
 
