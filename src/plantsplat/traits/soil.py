@@ -39,6 +39,8 @@ LAYER_SHARE = 0.5
 LAYER_SPREAD = 0.5
 """The soil's layer spreads over the pot's inside: its points' RMS distance from the axis is at least this share of
 the inside's radius."""
+STEPS_PER_SLAB = 4
+"""The windows are stepped by this fraction of their thickness."""
 MIN_LAYER_POINTS = 10
 """A window of fewer SfM points than this is not a surface (the soil was not seen)."""
 
@@ -65,14 +67,15 @@ def soil_layer(points: np.ndarray, centre: np.ndarray, rim_radius: float, rim_z:
     z, r = points[keep, 2][order], d[keep][order]
     if len(z) < min_points:
         return None
-    starts = np.arange(rim_z - depth, rim_z - slab + 1e-9, slab / 4)
+    starts = np.arange(rim_z - depth, rim_z - slab + 1e-9, slab / STEPS_PER_SLAB)
     counts = np.searchsorted(z, starts + slab) - np.searchsorted(z, starts)  # [W] points in each window
     need = max(min_points, share * counts.max())
     dense = np.flatnonzero(counts >= need)
     if not len(dense):
         return None
     first = dense[0]
-    lo = starts[first + int(np.argmax(counts[first:first + 5]))]  # the layer's peak: the densest window overlapping it
+    peak = first + int(np.argmax(counts[first:first + STEPS_PER_SLAB]))  # the densest window overlapping the first
+    lo = starts[peak]
     inside = (z >= lo) & (z < lo + slab)
     if np.sqrt(np.mean(r[inside] ** 2)) < spread * rin:
         return None  # the crown and the petioles' feet, standing on a soil no frame saw
