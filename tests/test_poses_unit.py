@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import sys
 
 import numpy as np
 import pytest
@@ -437,3 +439,42 @@ def test_a_failed_matching_process_stops_the_others_with_one_line(tmp_path):
     msg = str(err.value)
     assert time.perf_counter() - t0 < 30 and "\n" not in msg
     assert "code 3" in msg and "bad pairs" in msg and "--poses.num-threads 1" in msg
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the kernel's parent-death signal is Linux's")
+def test_a_matching_process_ends_with_the_stage_that_started_it(tmp_path):
+    """A stage killed outright (SIGKILL, the out-of-memory killer) cannot stop its matching processes; they end with it
+    instead of matching on, orphaned (2026-11-27: two went on for minutes after their stage was killed)."""
+    import signal
+    import subprocess
+    import time
+
+    from plantsplat.poses.sfm import PARENT_ENV
+
+    child = ("import time; from plantsplat.poses.match_worker import die_with_parent; die_with_parent(); "
+             "time.sleep(60)")
+    stage = (f"import os, subprocess, sys, time; env = {{**os.environ, {PARENT_ENV!r}: str(os.getpid())}}; "
+             f"p = subprocess.Popen([sys.executable, '-c', {child!r}], env=env); print(p.pid, flush=True); "
+             "time.sleep(60)")
+    proc = subprocess.Popen([sys.executable, "-c", stage], stdout=subprocess.PIPE, text=True)
+    pid = int(proc.stdout.readline())
+    time.sleep(2.0)  # the child has asked for the signal
+    assert _alive(pid)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    deadline = time.monotonic() + 10.0
+    while _alive(pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _alive(pid)
+    # a stage already gone before the worker asked: the worker ends at once
+    gone = subprocess.run([sys.executable, "-c", child], env={**os.environ, PARENT_ENV: "1"}, timeout=30)
+    assert gone.returncode == 1
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (a zombie waiting to be reaped does not)."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            return not any(line.startswith("State:") and "Z" in line.split()[1] for line in f)
+    except FileNotFoundError:
+        return False

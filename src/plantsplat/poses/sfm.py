@@ -45,6 +45,8 @@ matches every time, at about 1.4 times the matching time (22 s instead of 15 s f
 runs several one-thread processes instead."""
 MIN_PAIRS_PER_WORKER = 50
 """Pairs below which another matching process costs more (start-up, a database copy) than it saves."""
+PARENT_ENV = "PLANTSPLAT_MATCH_PARENT"
+"""Environment variable giving a matching process the process id of the stage that started it."""
 WORKER_POLL_S = 0.2
 """How often the matching processes are looked at (a failed one stops the others at once)."""
 
@@ -196,7 +198,7 @@ def _start_worker(db: Path, part: Path, pairs: list[tuple[str, str]], opts: SfmC
     _fresh(part)
     _copy_database(db, part / "database.db")
     write_pairs(part / "pairs.txt", pairs)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+    env = {**os.environ, PARENT_ENV: str(os.getpid()), "PYTHONPATH": os.pathsep.join(
         x for x in (str(Path(plantsplat.__file__).resolve().parents[1]), os.environ.get("PYTHONPATH")) if x)}
     here = part.resolve()  # the worker runs in its folder (nothing of the caller's folder on its path)
     with open(here / "log.txt", "wb") as log_file:
