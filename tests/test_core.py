@@ -186,3 +186,22 @@ def test_stage_meter_counts_the_cpu_of_waited_for_children():
         subprocess.run([sys.executable, "-c", busy], check=True)
         time.sleep(0.2)
     assert 0.3 <= m.cpu_seconds < m.seconds and m.peak_rss_mb > 0
+
+
+def test_images_read_in_threads_leave_stderr_where_it_was(tmp_path):
+    """The segment stage reads frames in two threads (GrabCut in a pool), and each quiet read sends the process's
+    stderr to a scratch file for a moment to catch libjpeg's complaints. Two such moments overlapping left stderr in a
+    deleted scratch file for the rest of the run: every log line after the segment stage was lost, the traits table
+    and a failed result's message among them (2026-11-27, every end-to-end run's log)."""
+    import subprocess
+    import sys
+
+    import cv2
+
+    png = tmp_path / "frame.png"
+    cv2.imwrite(str(png), np.zeros((64, 64, 3), np.uint8))
+    code = ("import sys; from concurrent.futures import ThreadPoolExecutor; from plantsplat.io import read_image\n"
+            f"with ThreadPoolExecutor(4) as pool: list(pool.map(lambda _: read_image({str(png)!r}), range(400)))\n"
+            "print('still said', file=sys.stderr)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and "still said" in out.stderr, out.stderr

@@ -23,6 +23,7 @@ import os
 import shutil
 import sys
 import tempfile
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -214,13 +215,18 @@ def write_image_atomic(path: str | os.PathLike, image: np.ndarray) -> None:
             raise PlantsplatError(f"{path}: could not write image")
 
 
+_STDERR_REDIRECT = threading.Lock()
+"""Held while the process's stderr is sent elsewhere: the file descriptor is the process's, not a thread's, and two
+threads redirecting it at once restore each other's scratch file instead of the real stderr."""
+
+
 @contextlib.contextmanager
 def native_stderr_said(said: list[str]) -> Iterator[None]:
     """Catch what C libraries print on the process's stderr during the block (libjpeg's "Premature end of JPEG
     file", "Corrupt JPEG data: ...") into ``said``, one line each, instead of letting it reach the terminal raw;
-    the caller says it in words, naming the file."""
-    sys.stderr.flush()
-    with tempfile.TemporaryFile(mode="w+b") as sink:
+    the caller says it in words, naming the file. One thread at a time (the segment stage reads frames in a pool)."""
+    with _STDERR_REDIRECT, tempfile.TemporaryFile(mode="w+b") as sink:
+        sys.stderr.flush()
         saved = os.dup(2)
         try:
             os.dup2(sink.fileno(), 2)
