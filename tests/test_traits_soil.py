@@ -8,12 +8,18 @@ import numpy as np
 import pytest
 
 from plantsplat.ply import write_point_cloud
+from plantsplat.segment.object3d import POT_INSIDE_SHARE, POT_SLAB_CM, SOIL_DEPTH_CM
 from plantsplat.traits.checks import workspace_soil
 from plantsplat.traits.soil import soil_layer
 from plantsplat.workspace import Workspace
 
 CENTRE = np.array([20.0, 5.0])
 RIM_R, RIM_Z = 7.0, 14.0
+
+
+def _layer(points):
+    """The soil layer of SfM ``points`` in this pot, looked for as the traits stage looks for it."""
+    return soil_layer(points, CENTRE, POT_INSIDE_SHARE * RIM_R, RIM_Z, slab=POT_SLAB_CM, depth=SOIL_DEPTH_CM)
 
 
 def _disc(rng, n, z, sigma=0.06, radius=0.75 * RIM_R):
@@ -37,14 +43,14 @@ def _pot_scene(rng, soil_z, soil_points, leaves=400, leaf_top=None, under=12):
 @pytest.mark.parametrize("seed", [0, 1])
 def test_soil_seen_between_the_leaves(seed):
     rng = np.random.default_rng(seed)
-    layer = soil_layer(_pot_scene(rng, 11.3, 120), CENTRE, RIM_R, RIM_Z)
+    layer = _layer(_pot_scene(rng, 11.3, 120))
     assert layer is not None and layer.z == pytest.approx(11.3, abs=0.1)
 
 
 def test_soil_hidden_under_leaves_but_for_a_few_patches():
     """A few dozen soil points under a canopy of leaves twice the pot's depth deep: still the lowest dense layer."""
     rng = np.random.default_rng(2)
-    layer = soil_layer(_pot_scene(rng, 10.2, 35, leaves=500), CENTRE, RIM_R, RIM_Z)
+    layer = _layer(_pot_scene(rng, 10.2, 35, leaves=500))
     assert layer is not None and layer.z == pytest.approx(10.2, abs=0.1)
 
 
@@ -56,18 +62,18 @@ def test_soil_wholly_hidden_is_not_invented():
     crown = np.column_stack([_disc(rng, 200, 0.0, radius=0.25 * RIM_R)[:, :2], rng.uniform(10.0, 12.5, 200)])
     leaves = np.column_stack([_disc(rng, 300, 0.0, radius=RIM_R)[:, :2], rng.uniform(RIM_Z - 0.3, RIM_Z + 4.0, 300)])
     pts = np.concatenate([crown, leaves, rng.uniform([-40, -40, 0], [60, 60, 60], (500, 3))])
-    assert soil_layer(pts, CENTRE, RIM_R, RIM_Z) is None
+    assert _layer(pts) is None
 
 
 def test_a_pot_filled_to_the_rim():
     rng = np.random.default_rng(4)
-    layer = soil_layer(_pot_scene(rng, RIM_Z - 0.25, 150, leaves=250, under=5), CENTRE, RIM_R, RIM_Z)
+    layer = _layer(_pot_scene(rng, RIM_Z - 0.25, 150, leaves=250, under=5))
     assert layer is not None and layer.z == pytest.approx(RIM_Z - 0.25, abs=0.1)
 
 
 def test_no_points_in_the_pot():
     rng = np.random.default_rng(5)
-    assert soil_layer(rng.uniform([-40, -40, 0], [-20, -20, 60], (500, 3)), CENTRE, RIM_R, RIM_Z) is None
+    assert _layer(rng.uniform([-40, -40, 0], [-20, -20, 60], (500, 3))) is None
 
 
 def test_the_stage_takes_the_sfm_layer_over_the_quick_model_s_band(tmp_path):

@@ -218,6 +218,10 @@ TOP_OPACITY = 0.5
 """Gaussians at least this opaque count for the decided plant's top."""
 POT_SLAB_CM = 0.5
 """Thickness of the horizontal slabs the pot (and its soil) is looked for in: the soil's height is known to it."""
+POT_INSIDE_SHARE = 0.8
+"""The pot's inside, where its soil is looked for: this share of the rim's radius (within the wall and the rim's lip)."""
+SOIL_DEPTH_CM = 6.0
+"""How far below the rim the soil is looked for (cm)."""
 FOOTPRINT_FLOOR_CM2 = 1e-6
 """Added to a footprint's covariance (cm²) so that a needle-thin Gaussian's can be inverted."""
 
@@ -260,7 +264,8 @@ def find_pot(points: np.ndarray, axis_xy: np.ndarray, slab: float = POT_SLAB_CM,
 
 
 def soil_band_in_pot(points: np.ndarray, centre: np.ndarray, r_rim: float, z_rim: float, slab: float,
-                     depth: float = 6.0, cover: float = 0.5, inner: float = 0.8, rings: int = 8, sectors: int = 16,
+                     depth: float = SOIL_DEPTH_CM, cover: float = 0.5, inner: float = POT_INSIDE_SHARE, rings: int = 8,
+                     sectors: int = 16,
                      spread: np.ndarray | None = None) -> tuple[float, float]:
     """The soil in a pot as the band of slabs that cover its inside: ``(top, bottom)``. The top is the highest slab
     below the rim whose Gaussians cover at least ``cover`` of the disc inside the rim (``inner`` of its radius, in

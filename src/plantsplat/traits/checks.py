@@ -37,14 +37,12 @@ from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_json
 from plantsplat.log import get_logger
 from plantsplat.ply import read_point_cloud
-from plantsplat.segment.object3d import POT_SLAB_CM, find_pot, orbit_axis
+from plantsplat.segment.object3d import POT_INSIDE_SHARE, POT_SLAB_CM, SOIL_DEPTH_CM, find_pot, orbit_axis
 from plantsplat.train.data import load_scene
 from plantsplat.traits.soil import soil_layer
 
 log = get_logger(__name__)
 
-SOIL_DISC_SHARE = 0.8
-"""Where the rim stands for an unseen soil, the soil's disc is this share of the rim's radius (inside the pot wall)."""
 MIN_SFM_POINTS = 50
 """The pot is looked for among the SfM points only when the model has at least this many."""
 
@@ -116,8 +114,8 @@ def workspace_soil(ws, calibrated: bool) -> tuple[float | None, str, tuple | Non
         return None, "no pot found: the height is the plant's extent (a plant in the ground)", None, 0.0
     layer = None
     if sfm is not None and pot["centre"] is not None and pot["radius"] is not None and np.isfinite(pot["rim"]):
-        layer = soil_layer(sfm, np.asarray(pot["centre"], float), float(pot["radius"]), float(pot["rim"]),
-                           slab=POT_SLAB_CM)
+        layer = soil_layer(sfm, np.asarray(pot["centre"], float), POT_INSIDE_SHARE * float(pot["radius"]),
+                           float(pot["rim"]), slab=POT_SLAB_CM, depth=SOIL_DEPTH_CM)
     if layer is not None:
         return layer.z, f"{pot['source']}; soil: the layer of {layer.points} SfM points in it", None, 0.0
     return _soil_of(pot["soil"], pot["bottom"], pot["rim"], pot["centre"], pot["radius"], pot["source"])
@@ -151,7 +149,7 @@ def _soil_of(soil_z: float, bottom: float, rim_z: float, centre, rim_radius, sou
     band's thickness."""
     if soil_z < rim_z:
         return (soil_z + bottom) / 2, source, None, float(soil_z - bottom)
-    disc = (np.asarray(centre, float), SOIL_DISC_SHARE * float(rim_radius))
+    disc = (np.asarray(centre, float), POT_INSIDE_SHARE * float(rim_radius))
     return float(soil_z), source + " (soil not seen: at most the rim)", disc, 0.0
 
 

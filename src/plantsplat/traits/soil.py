@@ -8,7 +8,7 @@ angles (2026-11-27: on foreign render 110 its layer began at the rim, 1.9 cm abo
 the SfM points inside the pot peaked within 0.15 cm of it; the same held on all twelve benchmark captures,
 among them one whose soil the quick model did not see at all).
 
-Inside the pot (within ``inner`` of the rim's radius, below the rim), the points are counted in windows
+Inside the pot (within ``inside_radius`` of its axis, below the rim), the points are counted in windows
 one ``slab`` thick, stepped by a quarter of it. Nothing of the plant grows below the soil, and what SfM
 puts under it (a few points seen through gaps, matched wrongly) is sparse: the soil is the lowest window
 that holds at least ``share`` of the densest window's points (leaves and the crown above it are layers too,
@@ -23,7 +23,8 @@ Example:
     >>> soil = np.c_[rng.uniform(-4, 4, (300, 2)), rng.normal(10.0, 0.05, 300)]  # the soil, 10 cm up
     >>> leaves = np.c_[rng.uniform(-4, 4, (400, 2)), rng.uniform(10.5, 14.0, 400)]  # leaves above it
     >>> noise = np.c_[rng.uniform(-4, 4, (10, 2)), rng.uniform(6.0, 9.5, 10)]  # stray points under it
-    >>> layer = soil_layer(np.concatenate([soil, leaves, noise]), np.zeros(2), rim_radius=6.0, rim_z=13.0)
+    >>> layer = soil_layer(np.concatenate([soil, leaves, noise]), np.zeros(2), inside_radius=4.8, rim_z=13.0, slab=0.5,
+    ...                    depth=6.0)
     >>> round(layer.z, 1), layer.points > 250
     (10.0, True)
 """
@@ -53,16 +54,16 @@ class SoilLayer:
     points: int
 
 
-def soil_layer(points: np.ndarray, centre: np.ndarray, rim_radius: float, rim_z: float, slab: float = 0.5,
-               depth: float = 6.0, inner: float = 0.8, share: float = LAYER_SHARE, spread: float = LAYER_SPREAD,
+def soil_layer(points: np.ndarray, centre: np.ndarray, inside_radius: float, rim_z: float, slab: float, depth: float,
+               share: float = LAYER_SHARE, spread: float = LAYER_SPREAD,
                min_points: int = MIN_LAYER_POINTS) -> SoilLayer | None:
-    """The soil in a pot (axis at ``centre`` ``[2]``, rim of ``rim_radius`` at ``rim_z``, cm) from SfM ``points``
-    ``[N, 3]`` in the cube frame: the lowest window ``slab`` cm thick, within ``depth`` below the rim, holding at least
-    ``share`` of the densest window's points and at least ``min_points``, its points spread from the axis by at least
-    ``spread`` of the inside's radius (see the module docstring); None when there is no such window."""
-    rin = inner * rim_radius
+    """The soil in a pot (axis at ``centre`` ``[2]``, its inside reaching ``inside_radius`` from the axis, the rim at
+    ``rim_z``; cm) from SfM ``points`` ``[N, 3]`` in the cube frame: the lowest window ``slab`` cm thick, within
+    ``depth`` below the rim, holding at least ``share`` of the densest window's points and at least ``min_points``, its
+    points spread from the axis by at least ``spread`` of ``inside_radius`` (see the module docstring); None when there
+    is no such window."""
     d = np.linalg.norm(points[:, :2] - np.asarray(centre, float), axis=1)
-    keep = (d < rin) & (points[:, 2] < rim_z) & (points[:, 2] >= rim_z - depth)
+    keep = (d < inside_radius) & (points[:, 2] < rim_z) & (points[:, 2] >= rim_z - depth)
     order = np.argsort(points[keep, 2], kind="stable")
     z, r = points[keep, 2][order], d[keep][order]
     if len(z) < min_points:
@@ -77,6 +78,6 @@ def soil_layer(points: np.ndarray, centre: np.ndarray, rim_radius: float, rim_z:
     peak = first + int(np.argmax(counts[first:first + STEPS_PER_SLAB]))  # the densest window overlapping the first
     lo = starts[peak]
     inside = (z >= lo) & (z < lo + slab)
-    if np.sqrt(np.mean(r[inside] ** 2)) < spread * rin:
+    if np.sqrt(np.mean(r[inside] ** 2)) < spread * inside_radius:
         return None  # the crown and the petioles' feet, standing on a soil no frame saw
     return SoilLayer(z=float(np.median(z[inside])), points=int(inside.sum()))
