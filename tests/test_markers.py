@@ -10,6 +10,7 @@ cv2 = pytest.importorskip("cv2")
 from plantsplat.cube import CubeSpec  # noqa: E402
 from plantsplat.markers import (  # noqa: E402
     Markers,
+    detect_frames,
     edge_shift_px,
     junctions,
     marker_cells,
@@ -102,3 +103,26 @@ def test_markers_file_roundtrip(tmp_path):
 
     with pytest.raises(PlantsplatError, match="not a markers file"):
         read_markers(tmp_path / "bad.json")
+
+
+def test_frames_detected_in_threads_give_what_one_thread_gives(tmp_path, monkeypatch):
+    """The frames are read and detected in a thread pool (issue 43): every frame keeps its own markers, frames without
+    one are left out, and the edge shift is the one a single thread measures."""
+    names = []
+    for k in range(7):
+        name = f"frame_{k:05d}.png"
+        img = draw_marker(k % 3, CORNERS + 6.0 * k, 0.6) if k != 4 else np.full((480, 480), 128, np.uint8)
+        cv2.imwrite(str(tmp_path / name), img)
+        names.append(name)
+    found = {}
+    for threads in ("1", "2"):
+        monkeypatch.setenv("NUMBA_NUM_THREADS", threads)  # the cores this process's pools may use
+        found[threads] = detect_frames(tmp_path, names)
+    one, two = found["1"], found["2"]
+    assert list(two.frames) == [n for n in names if n != "frame_00004.png"] and two.names == names
+    assert two.shift_samples == one.shift_samples == 6 and two.edge_shift_px == one.edge_shift_px
+    assert abs(two.edge_shift_px - 0.6) < 0.25
+    for k, n in enumerate(names):
+        if n in two.frames:
+            assert set(two.frames[n]) == {k % 3} and np.array_equal(two.frames[n][k % 3], one.frames[n][k % 3])
+            assert np.abs(two.frames[n][k % 3] - (CORNERS + 6.0 * k)).max() < 0.35

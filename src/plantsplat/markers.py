@@ -20,6 +20,7 @@ Example:
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,6 +32,7 @@ from plantsplat.cube import CubeSpec
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_image, read_json, write_json_atomic
 from plantsplat.log import get_logger, progress
+from plantsplat.resources import usable_cores
 
 log = get_logger(__name__)
 
@@ -192,20 +194,27 @@ class Markers:
     """Every frame searched, with markers or without."""
 
 
+def _detect_one(path: Path, cube: CubeSpec) -> tuple[dict[int, np.ndarray], list[float]]:
+    """One frame's markers and the edge shifts measured on them."""
+    gray = read_image(path, mode="gray")
+    det = markers_in_image(gray, cube)
+    shifts = [edge_shift_px(gray, mid, c, cube) for mid, c in det.items()]
+    return det, [s for s in shifts if s is not None]
+
+
 def detect_frames(image_dir: Path, names: list[str], cube: CubeSpec = CubeSpec()) -> Markers:
-    """Detect the cube's markers in every frame and correct the capture's edge shift (see the module docstring)."""
+    """Detect the cube's markers in every frame and correct the capture's edge shift (see the module docstring).
+
+    Frames are read and detected in a thread pool (OpenCV releases the GIL); results are taken in frame order, so
+    the outcome does not depend on the number of threads."""
     raw: dict[str, dict[int, np.ndarray]] = {}
     shifts: list[float] = []
-    for name in progress(names, "detecting the cube's markers"):
-        gray = read_image(Path(image_dir) / name, mode="gray")
-        det = markers_in_image(gray, cube)
-        if not det:
-            continue
-        raw[name] = det
-        for mid, c in det.items():
-            s = edge_shift_px(gray, mid, c, cube)
-            if s is not None:
-                shifts.append(s)
+    with ThreadPoolExecutor(max_workers=usable_cores()) as pool:
+        found = pool.map(lambda n: _detect_one(Path(image_dir) / n, cube), names)
+        for name, (det, s) in progress(zip(names, found), "detecting the cube's markers", total=len(names)):
+            if det:
+                raw[name] = det
+                shifts.extend(s)
     shift = float(np.median(shifts)) if len(shifts) >= MIN_SHIFT_SAMPLES else 0.0
     frames = {n: {m: shift_corners(c, shift) for m, c in d.items()} for n, d in raw.items()}
     log.info("markers: found in %d of %d frames; edge shift %.2f px (from %d detections)", len(frames), len(names),
