@@ -201,11 +201,13 @@ def test_scale_uncertainty_from_the_frames_that_see_the_cube(synth_run):
 def test_the_same_frames_give_the_same_cameras(synth_run, tmp_path):
     """Same input, same output: a second run on a copy of the frames registers the same cameras (issue 42, case 9;
     the extractor's threads once numbered the frames in a different order, and the mapper's threads once chose
-    between two models at random)."""
+    between two models at random), on one thread where the first ran on two (one matching process instead of two,
+    the global mapping in this process instead of its own beside the incremental one)."""
     cap, ws, report = synth_run
     ws2 = Workspace(tmp_path / "again")
     shutil.copytree(ws.images_dir, ws2.images_dir)
-    again = poses_stage.run(ws2, PosesConfig())
+    again = poses_stage.run(ws2, PosesConfig(num_threads=1))
+    assert PosesConfig().num_threads > 1 and set(again["mappers"]) == set(report["mappers"]) == {"incremental", "global"}
     assert again["pairs"] == report["pairs"] and again["registered"] == report["registered"]
     a, b = transforms_c2w(read_json(ws.transforms_json)), transforms_c2w(read_json(ws2.transforms_json))
     assert set(a) == set(b) and max(np.abs(a[n] - b[n]).max() for n in a) < 1e-6
@@ -242,3 +244,21 @@ def test_matching_processes_write_what_one_process_writes(synth_run, tmp_path, m
         assert not [p for p in db.parent.iterdir() if p.is_dir()] and (db.parent / "pairs_t.txt").is_file()
     assert len(pairs) >= 40 and len(tables[1][0]) >= 40
     assert tables[1] == tables[2]
+
+
+def test_a_failed_global_mapping_process_says_where_its_log_is(tmp_path):
+    """The global mapping runs in a process of its own (issue 43); when it fails, the stage stops with one line naming
+    its log and how to map in the stage's own process."""
+    import dataclasses
+
+    import pycolmap
+
+    from plantsplat.errors import PlantsplatError
+    from plantsplat.poses import sfm
+
+    db = tmp_path / "database.db"
+    pycolmap.Database.open(str(db)).close()
+    opts = dataclasses.replace(PosesConfig().sfm_options(), seed=-1)  # no seed COLMAP takes
+    proc = sfm.start_global_mapping(db, tmp_path, tmp_path / "global", opts)
+    with pytest.raises(PlantsplatError, match=r"global mapping process ended with code .*log\.txt.*num-threads 1"):
+        sfm.finish_global_mapping(proc, tmp_path / "global")

@@ -117,7 +117,8 @@ class PosesConfig:
     incremental model contradicts and it does not outnumber the reverse by this many standard deviations."""
     num_threads: int = 2
     """CPU threads of feature extraction, and processes of matching (each on one thread, its own share of the pairs);
-    k-means and the mappers run on one thread: the same frames then give the same cameras."""
+    above one, global mapping runs in a process of its own beside the incremental mapper. k-means, retrieval and each
+    mapper run on one thread: the same frames give the same cameras whatever this is."""
     seed: int = 0
     """Random seed (COLMAP's RANSAC and mapper)."""
     colmap_log: bool = False

@@ -43,11 +43,13 @@ from plantsplat.poses.sfm import (
     MAP_THREADS,
     colmap_logging,
     extract_features,
+    finish_global_mapping,
     global_then_incremental,
     incremental,
     match_exhaustive,
     match_pairs,
     merge_models,
+    start_global_mapping,
     write_model,
 )
 from plantsplat.workspace import Workspace
@@ -105,15 +107,37 @@ def _extend(rec, db: Path, vocab: Path | None, names: list[str], ws: Workspace, 
     return rec
 
 
-def _map(db: Path, vocab: Path | None, names: list[str], ws: Workspace, cfg: PosesConfig, report: dict, mapper: str):
-    """One mapping of the matched pairs in ``db``: the mapper, pieces merged, missing frames matched again."""
+def _mapped(db: Path, ws: Workspace, cfg: PosesConfig, mappers: list[str], report: dict) -> dict[str, list]:
+    """Each mapper's models of the pairs matched so far (largest first). With both mappers and more than one thread,
+    the global mapping runs in a process of its own beside the incremental one (:func:`start_global_mapping`);
+    otherwise it runs first, so that it maps the same matches either way."""
+    work = ws.root / WORK_DIR
+    opts = cfg.sfm_options()
+    t0 = time.perf_counter()
+    apart = "global" in mappers and "incremental" in mappers and cfg.num_threads > 1
+    log.info("SfM: %s mapping%s", " and ".join(mappers), " side by side" if apart else "")
+    background = start_global_mapping(db, ws.images_dir, work / "global", opts) if apart else None
+    models: dict[str, list] = {}
+    try:
+        if "global" in mappers and not apart:
+            models["global"] = global_then_incremental(db, ws.images_dir, work / "global", opts)
+        if "incremental" in mappers:
+            models["incremental"] = incremental(db, ws.images_dir, work / "incremental", opts)
+        if background is not None:
+            models["global"] = finish_global_mapping(background, work / "global")
+    finally:
+        if background is not None and background.poll() is None:  # an error or Ctrl-C here: the process goes too
+            background.kill()
+            background.wait()
+    report["timings"]["map_s"] = report["timings"].get("map_s", 0.0) + time.perf_counter() - t0
+    return models
+
+
+def _map(models: list, db: Path, vocab: Path | None, names: list[str], ws: Workspace, cfg: PosesConfig, report: dict,
+         mapper: str):
+    """One mapper's model from its ``models``: pieces merged, missing frames matched again (incremental)."""
     work = ws.root / WORK_DIR
     timings = report["timings"]
-    t0 = time.perf_counter()
-    log.info("SfM: %s mapping", mapper)
-    run = global_then_incremental if mapper == "global" else incremental
-    models = run(db, ws.images_dir, work / mapper, cfg.sfm_options())
-    timings["map_s"] = timings.get("map_s", 0.0) + time.perf_counter() - t0
     if not models:
         return None
     report["models_found"] = [m.num_reg_images() for m in models]
@@ -147,9 +171,10 @@ def _most_consistent(db: Path, vocab: Path | None, names: list[str], times: list
     significantly fewer of the matched pairs (:func:`_fewer_contradictions`, :mod:`plantsplat.poses.consistency`).
     The kept model's frames off the path are left out (:func:`leave_out_off_path`)."""
     mappers = ["incremental", "global"] if cfg.mapper == "auto" else [cfg.mapper]
+    mapped = _mapped(db, ws, cfg, mappers, report)
     found, off = {}, {}
     for m in mappers:
-        rec = _map(db, vocab, names, ws, cfg, report, m)
+        rec = _map(mapped[m], db, vocab, names, ws, cfg, report, m)
         if rec is not None:
             off[m] = off_path_frames(rec, names, times, cfg)
             found[m] = (rec, pair_errors(rec, db), rec.num_reg_images() - len(off[m]))

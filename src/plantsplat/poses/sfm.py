@@ -46,7 +46,10 @@ runs several one-thread processes instead."""
 MIN_PAIRS_PER_WORKER = 50
 """Pairs below which another matching process costs more (start-up, a database copy) than it saves."""
 PARENT_ENV = "PLANTSPLAT_MATCH_PARENT"
-"""Environment variable giving a matching process the process id of the stage that started it."""
+"""Environment variable giving a worker process (matching, global mapping) the process id of the stage that started
+it."""
+MAPPED_DIR = "models"
+"""Where the global mapping process leaves its models, one numbered folder each, largest first."""
 WORKER_POLL_S = 0.2
 """How often the matching processes are looked at (a failed one stops the others at once)."""
 
@@ -193,18 +196,24 @@ def _wait_workers(db: Path, procs: list[subprocess.Popen], parts: list[Path]) ->
 
 
 def _start_worker(db: Path, part: Path, pairs: list[tuple[str, str]], opts: SfmConfig) -> subprocess.Popen:
-    """A matching process for ``pairs`` on a copy of ``db`` in the fresh folder ``part`` (its output in ``log.txt``),
-    running this process's plantsplat (its folder first on the worker's path)."""
+    """A matching process for ``pairs`` on a copy of ``db`` in the fresh folder ``part`` (its output in ``log.txt``)."""
     _fresh(part)
     _copy_database(db, part / "database.db")
     write_pairs(part / "pairs.txt", pairs)
+    here = part.resolve()
+    return spawn_worker("plantsplat.poses.match_worker", [str(here / "database.db"), str(here / "pairs.txt"),
+                                                          json.dumps(dataclasses.asdict(opts))], here)
+
+
+def spawn_worker(module: str, args: list[str], here: Path) -> subprocess.Popen:
+    """``python -m module args`` running this process's plantsplat (its folder first on the worker's path), in the
+    folder ``here`` (nothing of the caller's folder on its path), its output in ``here/log.txt``; it ends with this
+    process (:data:`PARENT_ENV`)."""
     env = {**os.environ, PARENT_ENV: str(os.getpid()), "PYTHONPATH": os.pathsep.join(
         x for x in (str(Path(plantsplat.__file__).resolve().parents[1]), os.environ.get("PYTHONPATH")) if x)}
-    here = part.resolve()  # the worker runs in its folder (nothing of the caller's folder on its path)
     with open(here / "log.txt", "wb") as log_file:
-        return subprocess.Popen([sys.executable, "-m", "plantsplat.poses.match_worker", str(here / "database.db"),
-                                 str(here / "pairs.txt"), json.dumps(dataclasses.asdict(opts))], env=env,
-                                stdin=subprocess.DEVNULL, stdout=log_file, stderr=subprocess.STDOUT, cwd=here)
+        return subprocess.Popen([sys.executable, "-m", module, *args], env=env, stdin=subprocess.DEVNULL,
+                                stdout=log_file, stderr=subprocess.STDOUT, cwd=here)
 
 
 def write_pairs(path: Path, pairs: list[tuple[str, str]]) -> None:
@@ -309,6 +318,39 @@ def global_then_incremental(db: Path, image_dir: Path, out_dir: Path, opts: SfmC
         log.debug("continued mapping failed: %s", exc)
         cont = []
     return cont if cont and cont[0].num_reg_images() >= models[0].num_reg_images() else models
+
+
+def start_global_mapping(db: Path, image_dir: Path, out_dir: Path, opts: SfmConfig) -> subprocess.Popen:
+    """:func:`global_then_incremental` in a process of its own (:mod:`plantsplat.poses.map_worker`), on a copy of
+    ``db`` taken now, in the fresh folder ``out_dir``; :func:`finish_global_mapping` collects its models. It runs on
+    one thread beside the incremental mapper in this process, each on a core of its own."""
+    _fresh(out_dir)
+    _copy_database(db, out_dir / "database.db")
+    here = out_dir.resolve()
+    return spawn_worker("plantsplat.poses.map_worker", [str(here / "database.db"), str(Path(image_dir).resolve()),
+                                                        str(here), json.dumps(dataclasses.asdict(opts))], here)
+
+
+def finish_global_mapping(proc: subprocess.Popen, out_dir: Path) -> list:
+    """The models of the process :func:`start_global_mapping` started in ``out_dir`` (largest first), once it ends; a
+    one-line error naming its log when it fails."""
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
+
+    if proc.wait() != 0:
+        lines = (out_dir / "log.txt").read_text(errors="replace").strip().splitlines() or ["no message"]
+        raise PlantsplatError(f"{out_dir}: the global mapping process ended with code {proc.returncode} ({lines[-1]}; "
+                              f"see {out_dir / 'log.txt'}); re-run with --poses.num-threads 1 to map in this process")
+    done = out_dir / MAPPED_DIR
+    models = [pycolmap.Reconstruction(str(done / k)) for k in sorted((p.name for p in done.iterdir()), key=int)]
+    (out_dir / "database.db").unlink(missing_ok=True)
+    return models
+
+
+def write_models(models: list, out_dir: Path, verbose: bool = False) -> None:
+    """``models`` as COLMAP binary models in ``out_dir/0``, ``out_dir/1``, ... (in their order), ``out_dir`` fresh."""
+    _fresh(out_dir)
+    for k, rec in enumerate(models):
+        write_model(rec, out_dir / str(k), verbose)
 
 
 def write_model(rec, out_dir: Path, verbose: bool = False) -> None:
