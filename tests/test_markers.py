@@ -114,11 +114,13 @@ def test_frames_detected_in_threads_give_what_one_thread_gives(tmp_path, monkeyp
         img = draw_marker(k % 3, CORNERS + 6.0 * k, 0.6) if k != 4 else np.full((480, 480), 128, np.uint8)
         cv2.imwrite(str(tmp_path / name), img)
         names.append(name)
+    import plantsplat.markers
+
     found = {}
-    for threads in ("1", "2"):
-        monkeypatch.setenv("NUMBA_NUM_THREADS", threads)  # the cores this process's pools may use
+    for threads in (1, 2):
+        monkeypatch.setattr(plantsplat.markers, "usable_cores", lambda n=threads: n)  # the pool's threads
         found[threads] = detect_frames(tmp_path, names)
-    one, two = found["1"], found["2"]
+    one, two = found[1], found[2]
     assert list(two.frames) == [n for n in names if n != "frame_00004.png"] and two.names == names
     assert two.shift_samples == one.shift_samples == 6 and two.edge_shift_px == one.edge_shift_px
     assert abs(two.edge_shift_px - 0.6) < 0.25
