@@ -73,20 +73,18 @@ def main() -> None:
         subprocess.run(["git", "worktree", "add", "--detach", "-f", str(ref_tree), args.ref], cwd=ROOT, check=True,
                        capture_output=True)
         try:
-            rows = []
+            rows, cams = [], {}
             if not (ref_tree / "src" / "plantsplat").is_dir():
                 raise SystemExit(f"{args.ref}: no src/plantsplat in that commit")
             for k in range(args.rounds):
                 for label, src in (("ref", ref_tree / "src"), ("this", ROOT / "src")):
                     r = run_poses(src, args.frames, Path(tmp) / "runs" / label)
-                    rows.append({"round": k, "code": label, **{key: r[key] for key in r if key != "cameras"}})
-                    rows[-1]["_cams"] = r["cameras"]
+                    cams.setdefault(label, r.pop("cameras"))  # the first round's: every round maps the same frames
+                    rows.append({"round": k, "code": label, **r})
                     print(json.dumps({key: rows[-1][key] for key in ("round", "code", "wall_seconds")}), flush=True)
         finally:
             subprocess.run(["git", "worktree", "remove", "--force", str(ref_tree)], cwd=ROOT, capture_output=True)
-    ref_cams, this_cams = rows[0].pop("_cams"), rows[1].pop("_cams")
-    for r in rows:
-        r.pop("_cams", None)
+    ref_cams, this_cams = cams["ref"], cams["this"]
     same = set(ref_cams) == set(this_cams)
     diff = max(float(np.abs(ref_cams[n] - this_cams[n]).max()) for n in ref_cams) if same else None
     med = {c: float(np.median([r["timings"]["total_s"] for r in rows if r["code"] == c])) for c in ("ref", "this")}

@@ -45,9 +45,11 @@ matches every time, at about 1.4 times the matching time (22 s instead of 15 s f
 runs several one-thread processes instead."""
 MIN_PAIRS_PER_WORKER = 50
 """Pairs below which another matching process costs more (start-up, a database copy) than it saves."""
-PARENT_ENV = "PLANTSPLAT_MATCH_PARENT"
+PARENT_ENV = "PLANTSPLAT_WORKER_PARENT"
 """Environment variable giving a worker process (matching, global mapping) the process id of the stage that started
 it."""
+WORKER_LOG = "log.txt"
+"""A worker process's output, in its folder."""
 MAPPED_DIR = "models"
 """Where the global mapping process leaves its models, one numbered folder each, largest first."""
 WORKER_POLL_S = 0.2
@@ -179,7 +181,7 @@ def match_pairs(db: Path, work_dir: Path, pairs: list[tuple[str, str]], opts: Sf
         for part in parts:  # the copies go; a failed worker's log stays
             for f in part.glob("database.db*"):
                 f.unlink(missing_ok=True)
-            if not (part / "log.txt").is_file() or all(p.returncode == 0 for p in procs):
+            if not (part / WORKER_LOG).is_file() or all(p.returncode == 0 for p in procs):
                 shutil.rmtree(part, ignore_errors=True)
 
 
@@ -188,9 +190,8 @@ def _wait_workers(db: Path, procs: list[subprocess.Popen], parts: list[Path]) ->
     while not all(p.poll() == 0 for p in procs):
         for proc, part in zip(procs, parts):
             if proc.poll() not in (None, 0):
-                lines = (part / "log.txt").read_text(errors="replace").strip().splitlines() or ["no message"]
-                raise PlantsplatError(f"{db}: a matching process ended with code {proc.returncode} ({lines[-1]}; "
-                                      f"see {part / 'log.txt'}); re-run with --poses.num-threads 1 to match in "
+                raise PlantsplatError(f"{db}: a matching process ended with code {proc.returncode} "
+                                      f"({_worker_said(part)}); re-run with --poses.num-threads 1 to match in "
                                       "this process")
         time.sleep(WORKER_POLL_S)
 
@@ -211,9 +212,15 @@ def spawn_worker(module: str, args: list[str], here: Path) -> subprocess.Popen:
     process (:data:`PARENT_ENV`)."""
     env = {**os.environ, PARENT_ENV: str(os.getpid()), "PYTHONPATH": os.pathsep.join(
         x for x in (str(Path(plantsplat.__file__).resolve().parents[1]), os.environ.get("PYTHONPATH")) if x)}
-    with open(here / "log.txt", "wb") as log_file:
+    with open(here / WORKER_LOG, "wb") as log_file:
         return subprocess.Popen([sys.executable, "-m", module, *args], env=env, stdin=subprocess.DEVNULL,
                                 stdout=log_file, stderr=subprocess.STDOUT, cwd=here)
+
+
+def _worker_said(here: Path) -> str:
+    """The last line a worker process wrote in its folder ``here``, and where the rest is."""
+    lines = (here / WORKER_LOG).read_text(errors="replace").strip().splitlines() or ["no message"]
+    return f"{lines[-1]}; see {here / WORKER_LOG}"
 
 
 def write_pairs(path: Path, pairs: list[tuple[str, str]]) -> None:
@@ -337,9 +344,8 @@ def finish_global_mapping(proc: subprocess.Popen, out_dir: Path) -> list:
     import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     if proc.wait() != 0:
-        lines = (out_dir / "log.txt").read_text(errors="replace").strip().splitlines() or ["no message"]
-        raise PlantsplatError(f"{out_dir}: the global mapping process ended with code {proc.returncode} ({lines[-1]}; "
-                              f"see {out_dir / 'log.txt'}); re-run with --poses.num-threads 1 to map in this process")
+        raise PlantsplatError(f"{out_dir}: the global mapping process ended with code {proc.returncode} "
+                              f"({_worker_said(out_dir)}); re-run with --poses.num-threads 1 to map in this process")
     done = out_dir / MAPPED_DIR
     models = [pycolmap.Reconstruction(str(done / k)) for k in sorted((p.name for p in done.iterdir()), key=int)]
     (out_dir / "database.db").unlink(missing_ok=True)
