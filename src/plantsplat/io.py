@@ -217,15 +217,29 @@ def write_image_atomic(path: str | os.PathLike, image: np.ndarray) -> None:
 
 _STDERR_REDIRECT = threading.Lock()
 """Held while the process's stderr is sent elsewhere: the file descriptor is the process's, not a thread's, and two
-threads redirecting it at once restore each other's scratch file instead of the real stderr."""
+threads redirecting it at once restore each other's sink instead of the real stderr."""
+JPEG_TAIL_BYTES = 4096
+"""Bytes at a JPEG's end searched for its end-of-image marker (some cameras pad the file after it)."""
+
+
+def jpeg_cut_short(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a JPEG whose data stops before its end-of-image marker (a copy or download cut short)."""
+    try:
+        with open(path, "rb") as f:
+            if f.read(2) != b"\xff\xd8":
+                return False
+            size = f.seek(0, os.SEEK_END)
+            f.seek(max(2, size - JPEG_TAIL_BYTES))
+            return b"\xff\xd9" not in f.read()
+    except OSError:
+        return False  # the decoder says the file is unreadable
 
 
 @contextlib.contextmanager
-def native_stderr_said(said: list[str]) -> Iterator[None]:
-    """Catch what C libraries print on the process's stderr during the block (libjpeg's "Premature end of JPEG
-    file", "Corrupt JPEG data: ...") into ``said``, one line each, instead of letting it reach the terminal raw;
-    the caller says it in words, naming the file. One thread at a time (the segment stage reads frames in a pool)."""
-    with _STDERR_REDIRECT, tempfile.TemporaryFile(mode="w+b") as sink:
+def native_stderr_silenced() -> Iterator[None]:
+    """Send what C libraries print on the process's stderr during the block nowhere. The descriptor is the
+    process's: whatever another thread prints meanwhile is lost too, so this is kept to a damaged file's decoding."""
+    with _STDERR_REDIRECT, open(os.devnull, "wb") as sink:
         sys.stderr.flush()
         saved = os.dup(2)
         try:
@@ -234,20 +248,20 @@ def native_stderr_said(said: list[str]) -> Iterator[None]:
         finally:
             os.dup2(saved, 2)
             os.close(saved)
-            sink.seek(0)
-            said.extend(ln.strip() for ln in sink.read().decode(errors="replace").splitlines() if ln.strip())
 
 
 def imread_quietly(path: str | os.PathLike, flag: int) -> np.ndarray | None:
-    """``cv2.imread`` whose decoder complaints (a truncated or damaged JPEG) become one warning naming the file."""
+    """``cv2.imread`` of a user's photo where a JPEG cut short gives one warning naming the file instead of
+    libjpeg's raw "Premature end of JPEG file". The file is checked before decoding, so that the process's stderr
+    is left alone for every whole file (other threads log and draw progress bars on it)."""
     import cv2  # deferred: OpenCV is slow to load, and the CLI imports this module
 
-    said: list[str] = []
-    with native_stderr_said(said):
+    if not jpeg_cut_short(path):
+        return cv2.imread(str(path), flag)
+    with native_stderr_silenced():
         img = cv2.imread(str(path), flag)
-    if said:
-        log.warning("%s: damaged image (%s); it is used as far as it could be decoded", path,
-                                     "; ".join(dict.fromkeys(said)))
+    if img is not None:
+        log.warning("%s: damaged image (premature end of JPEG file); it is used as far as it could be decoded", path)
     return img
 
 
