@@ -499,6 +499,27 @@ def test_fused_ssim_matches_torch_ssim_values_and_gradients(h, w):
         ssim_cpu(pred, gt[:, :-1] if w > 1 else gt[:-1])
 
 
+@pytest.mark.parametrize("h,w", [(540, 960), (37, 29), (150, 20), (5, 3), (1, 1)])
+def test_ssim_map_kernel_matches_torch_ssim_map(h, w):
+    """The numba SSIM map (the evaluation's scores) against the PyTorch definition in plantsplat.train.metrics in
+    float64, borders (zero padding) and images smaller than the window included: each pixel within 3e-4 and the mean
+    within 1e-6. (In float32 both lose digits where a window is nearly flat, its variance a difference of nearly
+    equal moments: PyTorch's float32 map is up to 1.1e-4 off there, the kernel's 1.2e-4.)"""
+    from plantsplat.raster.ssim import ssim_map_cpu
+    from plantsplat.train.metrics import scored_ssim_map, ssim_map
+
+    g = torch.Generator().manual_seed(h * 1000 + w)
+    gt = torch.rand(h, w, 3, generator=g)
+    pred = (gt + 0.15 * torch.randn(h, w, 3, generator=g)).clamp(0, 1)
+    pred[: h // 2, : w // 2] = gt[: h // 2, : w // 2] = 0.5  # a flat corner, equal in both
+    ref, fast = ssim_map(pred.double(), gt.double()), ssim_map_cpu(pred, gt)
+    assert fast.shape == ref.shape and fast.dtype == torch.float32
+    assert float((fast - ref).abs().max()) < 3e-4 and abs(float(fast.double().mean() - ref.mean())) < 1e-6
+    assert torch.equal(scored_ssim_map(pred, gt), fast)
+    with pytest.raises(ValueError):
+        ssim_map_cpu(pred, gt[:, :-1] if w > 1 else gt[:-1])
+
+
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
 def test_numba_sh_colours_match_torch_values_and_gradients(degree):
     """sh_colors_cpu (the cpu backend's SH colours) against the autograd version the reference backend

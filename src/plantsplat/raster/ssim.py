@@ -209,6 +209,40 @@ def _fwd(col, alpha, bg, y, g, want_grad, x, dmaps, sums, img, img_alpha, live, 
                 sums[i, 0] = _ssim_row(mu[0, :L], mu[1, :L], mu[2, :L], mu[3, :L], mu[4, :L]) + _F32(n - L)
 
 
+@njit(parallel=True, fastmath=_FM, cache=True, error_model="numpy")
+def _map(x, y, g, out):  # pragma: no cover - numba
+    """The SSIM map of x against y (interleaved [H, W*3]) into out: the moments blurred vertically from the 11 rows
+    around each output row, then horizontally (as :func:`_fwd`, over every window)."""
+    h, n = y.shape
+    nblk = (h + _BLOCK - 1) // _BLOCK
+    for b in prange(nblk):
+        zero = np.zeros(n, np.float32)
+        pad = np.zeros((5, n + 2 * _R * _C), np.float32)  # borders stay zero (zero padding)
+        mu = np.empty((5, n), np.float32)
+        for i in range(b * _BLOCK, min(h, (b + 1) * _BLOCK)):
+            xs = _rows11(x, i, zero, 0, n)
+            ys = _rows11(y, i, zero, 0, n)
+            for q in range(n):
+                a0, a1, a2, a3, a4, a5 = xs[0][q], xs[1][q], xs[2][q], xs[3][q], xs[4][q], xs[5][q]
+                a6, a7, a8, a9, a10 = xs[6][q], xs[7][q], xs[8][q], xs[9][q], xs[10][q]
+                v0, v1, v2, v3, v4, v5 = ys[0][q], ys[1][q], ys[2][q], ys[3][q], ys[4][q], ys[5][q]
+                v6, v7, v8, v9, v10 = ys[6][q], ys[7][q], ys[8][q], ys[9][q], ys[10][q]
+                pad[0, _R * _C + q] = _sym(g, a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10)
+                pad[1, _R * _C + q] = _sym(g, v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10)
+                pad[2, _R * _C + q] = _sym(g, a0 * a0, a1 * a1, a2 * a2, a3 * a3, a4 * a4, a5 * a5, a6 * a6, a7 * a7,
+                                           a8 * a8, a9 * a9, a10 * a10)
+                pad[3, _R * _C + q] = _sym(g, v0 * v0, v1 * v1, v2 * v2, v3 * v3, v4 * v4, v5 * v5, v6 * v6, v7 * v7,
+                                           v8 * v8, v9 * v9, v10 * v10)
+                pad[4, _R * _C + q] = _sym(g, a0 * v0, a1 * v1, a2 * v2, a3 * v3, a4 * v4, a5 * v5, a6 * v6, a7 * v7,
+                                           a8 * v8, a9 * v9, a10 * v10)
+            for m in range(5):
+                _hblur(pad[m], mu[m], g)
+            o = out[i]
+            for q in range(n):
+                _, _, c1, c2, d1, d2 = _terms(mu[0], mu[1], mu[2], mu[3], mu[4], q)
+                o[q] = (c1 * c2) / (d1 * d2)
+
+
 @njit(inline="always")
 def _reach(rng, i, k, w):  # pragma: no cover - numba
     """The pixel range within ``k`` px of the ranges ``rng[r]`` (``[a, b)`` per row, ``(0, 0)`` for none) of rows
@@ -423,6 +457,24 @@ def ssim_cpu(pred: Tensor, gt: Tensor) -> Tensor:
     return _SSIMCPU.apply(pred, gt).to(pred.dtype)
 
 
+def ssim_map_cpu(pred: Tensor, gt: Tensor) -> Tensor:
+    """The per-pixel SSIM map ``[H, W, 3]`` of two [H, W, 3] float images in [0, 1] (11x11 Gaussian window, sigma
+    1.5, zero padding), as :func:`plantsplat.train.metrics.ssim_map` computes it with PyTorch, in one numba pass over
+    the rows (no gradient). For scoring renders: several times faster than the PyTorch convolutions on a CPU.
+
+    Example:
+        >>> import torch
+        >>> x = torch.rand(20, 24, 3)
+        >>> round(float(ssim_map_cpu(x, x).min()), 5)
+        1.0
+    """
+    _check(pred, gt, "ssim_map_cpu")
+    x, y = _rows(pred), _rows(gt)
+    out = np.empty_like(x)
+    _map(x, y, _window()[: _R + 1].copy(), out)
+    return torch.from_numpy(out).view(pred.shape).to(pred.dtype)
+
+
 def photometric_loss_cpu(color: Tensor, alpha: Tensor, bg: Tensor, gt: Tensor,
                          ssim_lambda: float = 0.2, gt_alpha: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """The 3DGS training loss of a render composited over a background, fused on the CPU.
@@ -453,4 +505,4 @@ def photometric_loss_cpu(color: Tensor, alpha: Tensor, bg: Tensor, gt: Tensor,
     return loss.to(color.dtype), mse
 
 
-__all__ = ["photometric_loss_cpu", "ssim_cpu"]
+__all__ = ["photometric_loss_cpu", "ssim_cpu", "ssim_map_cpu"]

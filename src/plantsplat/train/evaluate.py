@@ -48,7 +48,7 @@ from plantsplat.segment.scores import mask_iou
 from plantsplat.segment.stored import segment_images
 from plantsplat.train import data as D
 from plantsplat.train.checkpoint import load_model
-from plantsplat.train.metrics import load_lpips, lpips, mask_interior, masked_mean, psnr, ssim, ssim_map
+from plantsplat.train.metrics import load_lpips, lpips, mask_interior, masked_mean, psnr, scored_ssim_map
 from plantsplat.train.model import sh_degree_of
 from plantsplat.train.render import ImageCache, occluders_from, render
 from plantsplat.workspace import Workspace
@@ -105,7 +105,7 @@ def _score_view(ev: _Evaluation, name: str, pred, img, alpha, viewmat, K, w, h, 
         stem = Path(name).stem
         write_image_atomic(save_dir / f"{stem}_render.png", _to_u8(pred))
         write_image_atomic(save_dir / f"{stem}_gt.png", _to_u8(gt))
-    smap = ssim_map(pred, gt)  # [h, w, 3]; object mode: the foreground's SSIM is its mean over the mask
+    smap = scored_ssim_map(pred, gt)  # [h, w, 3]; object mode: the foreground's SSIM is its mean over the mask
     row["composite"] = {"psnr": float(psnr(pred, gt)), "ssim": float(smap.mean()), "lpips": lpips(ev.net, pred, gt)}
     if alpha is not None and float(alpha.sum()) > 0:
         pred_m = pred * alpha + (1 - alpha) * bg
@@ -113,7 +113,7 @@ def _score_view(ev: _Evaluation, name: str, pred, img, alpha, viewmat, K, w, h, 
         row["foreground"] = foreground_scores(pred, gt_fg, alpha, smap if gt is gt_fg else None)
         row["foreground"]["lpips"] = lpips(ev.net, pred_m[y0:y1, x0:x1], gt_fg[y0:y1, x0:x1])
         if not ev.object_mode:
-            row["pbr"] = {"psnr": float(psnr(pred_m, gt_fg)), "ssim": float(ssim(pred_m, gt_fg)),
+            row["pbr"] = {"psnr": float(psnr(pred_m, gt_fg)), "ssim": float(scored_ssim_map(pred_m, gt_fg).mean()),
                           "lpips": lpips(ev.net, pred_m, gt_fg)}
     return row
 
@@ -129,7 +129,7 @@ def _score_segmented_pbr(ws: Workspace, ev: _Evaluation, per_view: list[dict], p
         m = torch.from_numpy(seg_masks[row["name"]]).float()[..., None]  # [h, w, 1] in {0, 1}
         pred = torch.from_numpy(pbr_renders[row["name"]]).float() / 255.0
         pred_m = pred * m + (1 - m) * bg
-        row["pbr_segmented"] = {"psnr": float(psnr(pred_m, gt_fg)), "ssim": float(ssim(pred_m, gt_fg)),
+        row["pbr_segmented"] = {"psnr": float(psnr(pred_m, gt_fg)), "ssim": float(scored_ssim_map(pred_m, gt_fg).mean()),
                                 "lpips": lpips(ev.net, pred_m, gt_fg), "mask_iou": mask_iou(alpha > 0.5, m > 0.5)}
     return error
 
@@ -291,7 +291,7 @@ def foreground_scores(pred: torch.Tensor, gt_fg: torch.Tensor, alpha: torch.Tens
     the mask ``alpha`` ``[h, w, 1]``, and the PSNR over the mask's interior (None when the mask has none).
     ``smap``: the SSIM map of ``pred`` against ``gt_fg`` when the caller has it already."""
     inner = mask_interior(alpha)
-    smap = ssim_map(pred, gt_fg) if smap is None else smap
+    smap = scored_ssim_map(pred, gt_fg) if smap is None else smap
     return {"psnr": float(psnr(pred, gt_fg, alpha)), "ssim": float(masked_mean(smap, alpha)),
             "psnr_interior": float(psnr(pred, gt_fg, inner)) if float(inner.sum()) > 0 else None}
 

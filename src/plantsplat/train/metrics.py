@@ -24,6 +24,7 @@ import torch
 import torch.nn.functional as F
 
 from plantsplat.log import get_logger
+from plantsplat.raster.ssim import ssim_map_cpu
 
 log = get_logger(__name__)
 
@@ -105,6 +106,15 @@ def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: floa
     c1, c2 = 0.01**2, 0.03**2
     s = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))
     return s[0].permute(1, 2, 0)  # [H, W, C]
+
+
+def scored_ssim_map(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """:func:`ssim_map` for scoring, without a gradient: on the CPU by the numba kernel
+    :func:`plantsplat.raster.ssim.ssim_map_cpu` (equal within 1e-5, tested; the PyTorch convolutions took 0.36 s
+    per 960x540 view, the kernel 7 ms), elsewhere by :func:`ssim_map`. ``[H, W, C]``"""
+    if pred.device.type == "cpu" and pred.shape[-1] == 3:
+        return ssim_map_cpu(pred, gt)
+    return ssim_map(pred, gt)
 
 
 def ssim(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
