@@ -94,6 +94,106 @@ def _hblur(p, o, g):  # pragma: no cover - numba
 
 
 @njit(parallel=True, fastmath=_FM, cache=True, error_model="numpy")
+def _map(x, y, g, out):  # pragma: no cover - numba
+    """The SSIM map of x against y (interleaved [H, W*3]) into out: the moments blurred vertically from the 11 rows
+    around each output row, then horizontally (as :func:`_fwd`, over every window)."""
+    h, n = y.shape
+    nblk = (h + _BLOCK - 1) // _BLOCK
+    for b in prange(nblk):
+        zero = np.zeros(n, np.float32)
+        pad = np.zeros((5, n + 2 * _R * _C), np.float32)  # borders stay zero (zero padding)
+        mu = np.empty((5, n), np.float32)
+        for i in range(b * _BLOCK, min(h, (b + 1) * _BLOCK)):
+            xs = _rows11(x, i, zero, 0, n)
+            ys = _rows11(y, i, zero, 0, n)
+            for q in range(n):
+                a0, a1, a2, a3, a4, a5 = xs[0][q], xs[1][q], xs[2][q], xs[3][q], xs[4][q], xs[5][q]
+                a6, a7, a8, a9, a10 = xs[6][q], xs[7][q], xs[8][q], xs[9][q], xs[10][q]
+                v0, v1, v2, v3, v4, v5 = ys[0][q], ys[1][q], ys[2][q], ys[3][q], ys[4][q], ys[5][q]
+                v6, v7, v8, v9, v10 = ys[6][q], ys[7][q], ys[8][q], ys[9][q], ys[10][q]
+                pad[0, _R * _C + q] = _sym(g, a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10)
+                pad[1, _R * _C + q] = _sym(g, v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10)
+                pad[2, _R * _C + q] = _sym(g, a0 * a0, a1 * a1, a2 * a2, a3 * a3, a4 * a4, a5 * a5, a6 * a6, a7 * a7,
+                                           a8 * a8, a9 * a9, a10 * a10)
+                pad[3, _R * _C + q] = _sym(g, v0 * v0, v1 * v1, v2 * v2, v3 * v3, v4 * v4, v5 * v5, v6 * v6, v7 * v7,
+                                           v8 * v8, v9 * v9, v10 * v10)
+                pad[4, _R * _C + q] = _sym(g, a0 * v0, a1 * v1, a2 * v2, a3 * v3, a4 * v4, a5 * v5, a6 * v6, a7 * v7,
+                                           a8 * v8, a9 * v9, a10 * v10)
+            for m in range(5):
+                _hblur(pad[m], mu[m], g)
+            o = out[i]
+            for q in range(n):
+                _, _, c1, c2, d1, d2 = _terms(mu[0], mu[1], mu[2], mu[3], mu[4], q)
+                o[q] = (c1 * c2) / (d1 * d2)
+
+
+@njit(inline="always")
+def _reach(rng, i, k, w):  # pragma: no cover - numba
+    """The pixel range within ``k`` px of the ranges ``rng[r]`` (``[a, b)`` per row, ``(0, 0)`` for none) of rows
+    i - k .. i + k, within ``[0, w)``; ``(0, 0)`` if they are all empty."""
+    h = rng.shape[0]
+    lo = w
+    hi = 0
+    for r in range(max(0, i - k), min(h, i + k + 1)):
+        if rng[r, 1] > rng[r, 0]:
+            lo = min(lo, rng[r, 0])
+            hi = max(hi, rng[r, 1])
+    if hi <= lo:
+        return 0, 0
+    return max(0, lo - k), min(w, hi + k)
+
+
+@njit(inline="always", fastmath=_FM)
+def _terms(m0, m1, m2, m3, m4, q):  # pragma: no cover - numba
+    """mu_x, mu_y and the four factors of SSIM = (a1 a2) / (b1 b2) at column q of the blurred moments m0..m4
+    (x, y, x^2, y^2, x y)."""
+    mx = m0[q]
+    my = m1[q]
+    a1 = _F32(2.0) * mx * my + _C1
+    a2 = _F32(2.0) * (m4[q] - mx * my) + _C2
+    b1 = mx * mx + my * my + _C1
+    b2 = m2[q] + m3[q] - mx * mx - my * my + _C2
+    return mx, my, a1, a2, b1, b2
+
+
+@njit(inline="always", fastmath=_FM)
+def _ssim_row(m0, m1, m2, m3, m4):  # pragma: no cover - numba
+    """Sum of the SSIM map over (part of) one row from its blurred moments m0..m4."""
+    s_row = _F32(0.0)
+    for q in range(m0.shape[0]):
+        _, _, a1, a2, b1, b2 = _terms(m0, m1, m2, m3, m4, q)
+        s_row += (a1 * a2) / (b1 * b2)
+    return s_row
+
+
+@njit(inline="always", fastmath=_FM)
+def _ssim_row_grad(m0, m1, m2, m3, m4, d0, d1, d2):  # pragma: no cover - numba
+    """As :func:`_ssim_row`, also writing dS/dmu_x, dS/dE[x^2], dS/dE[x y] into d0, d1, d2."""
+    s_row = _F32(0.0)
+    for q in range(m0.shape[0]):
+        mx, my, a1, a2, b1, b2 = _terms(m0, m1, m2, m3, m4, q)
+        ib1 = _F32(1.0) / b1  # b1 >= C1, b2 >= C2 (up to rounding): never zero
+        ib2 = _F32(1.0) / b2
+        ib = ib1 * ib2
+        s = a1 * a2 * ib
+        s_row += s
+        # no division by a1 or a2: a2 = 2 cov(x, y) + C2 is exactly zero where a negative covariance cancels C2,
+        # and the former s / a2 was then 0 * inf = NaN in the gradient of a finite loss
+        d0[q] = _F32(2.0) * (my * (a2 - a1) * ib + mx * s * (ib2 - ib1))
+        d1[q] = -s * ib2
+        d2[q] = _F32(2.0) * a1 * ib
+    return s_row
+
+
+_FWD_SIGNATURE = ("void(f4[:, ::1], f4[:, ::1], f4[::1], f4[:, ::1], f4[::1], b1, f4[:, ::1], f4[:, :, ::1], f4[:, ::1], "
+                  "f4[:, :], f4[:, :], i8[:, ::1], i8[:, ::1])")
+""":func:`_fwd`'s one signature. ``img`` and ``img_alpha`` are crops of whole frames (strided rows) or, as a whole frame
+or ``_NO_ALPHA``, contiguous: typed for any layout, so that both take the same machine code. Left to numba, each
+layout compiled a specialisation of its own, 14 s each on the 2-core machine (the quick model's whole frames, then
+the object model's crops; a crop as wide as the frame would have compiled a third in the middle of a training)."""
+
+
+@njit(_FWD_SIGNATURE, parallel=True, fastmath=_FM, cache=True, error_model="numpy")
 def _fwd(col, alpha, bg, y, g, want_grad, x, dmaps, sums, img, img_alpha, live, rng):  # pragma: no cover - numba
     """SSIM of x = col + (1 - alpha) bg (written to x) against y, interleaved [H, W*3] (alpha
     [H, W], g the window's six distinct taps): sums[i] = (row i's SSIM sum, |x - y| sum,
@@ -207,98 +307,6 @@ def _fwd(col, alpha, bg, y, g, want_grad, x, dmaps, sums, img, img_alpha, live, 
                                             dmaps[1, i, q0:q1], dmaps[2, i, q0:q1]) + _F32(n - L)
             else:
                 sums[i, 0] = _ssim_row(mu[0, :L], mu[1, :L], mu[2, :L], mu[3, :L], mu[4, :L]) + _F32(n - L)
-
-
-@njit(parallel=True, fastmath=_FM, cache=True, error_model="numpy")
-def _map(x, y, g, out):  # pragma: no cover - numba
-    """The SSIM map of x against y (interleaved [H, W*3]) into out: the moments blurred vertically from the 11 rows
-    around each output row, then horizontally (as :func:`_fwd`, over every window)."""
-    h, n = y.shape
-    nblk = (h + _BLOCK - 1) // _BLOCK
-    for b in prange(nblk):
-        zero = np.zeros(n, np.float32)
-        pad = np.zeros((5, n + 2 * _R * _C), np.float32)  # borders stay zero (zero padding)
-        mu = np.empty((5, n), np.float32)
-        for i in range(b * _BLOCK, min(h, (b + 1) * _BLOCK)):
-            xs = _rows11(x, i, zero, 0, n)
-            ys = _rows11(y, i, zero, 0, n)
-            for q in range(n):
-                a0, a1, a2, a3, a4, a5 = xs[0][q], xs[1][q], xs[2][q], xs[3][q], xs[4][q], xs[5][q]
-                a6, a7, a8, a9, a10 = xs[6][q], xs[7][q], xs[8][q], xs[9][q], xs[10][q]
-                v0, v1, v2, v3, v4, v5 = ys[0][q], ys[1][q], ys[2][q], ys[3][q], ys[4][q], ys[5][q]
-                v6, v7, v8, v9, v10 = ys[6][q], ys[7][q], ys[8][q], ys[9][q], ys[10][q]
-                pad[0, _R * _C + q] = _sym(g, a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10)
-                pad[1, _R * _C + q] = _sym(g, v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10)
-                pad[2, _R * _C + q] = _sym(g, a0 * a0, a1 * a1, a2 * a2, a3 * a3, a4 * a4, a5 * a5, a6 * a6, a7 * a7,
-                                           a8 * a8, a9 * a9, a10 * a10)
-                pad[3, _R * _C + q] = _sym(g, v0 * v0, v1 * v1, v2 * v2, v3 * v3, v4 * v4, v5 * v5, v6 * v6, v7 * v7,
-                                           v8 * v8, v9 * v9, v10 * v10)
-                pad[4, _R * _C + q] = _sym(g, a0 * v0, a1 * v1, a2 * v2, a3 * v3, a4 * v4, a5 * v5, a6 * v6, a7 * v7,
-                                           a8 * v8, a9 * v9, a10 * v10)
-            for m in range(5):
-                _hblur(pad[m], mu[m], g)
-            o = out[i]
-            for q in range(n):
-                _, _, c1, c2, d1, d2 = _terms(mu[0], mu[1], mu[2], mu[3], mu[4], q)
-                o[q] = (c1 * c2) / (d1 * d2)
-
-
-@njit(inline="always")
-def _reach(rng, i, k, w):  # pragma: no cover - numba
-    """The pixel range within ``k`` px of the ranges ``rng[r]`` (``[a, b)`` per row, ``(0, 0)`` for none) of rows
-    i - k .. i + k, within ``[0, w)``; ``(0, 0)`` if they are all empty."""
-    h = rng.shape[0]
-    lo = w
-    hi = 0
-    for r in range(max(0, i - k), min(h, i + k + 1)):
-        if rng[r, 1] > rng[r, 0]:
-            lo = min(lo, rng[r, 0])
-            hi = max(hi, rng[r, 1])
-    if hi <= lo:
-        return 0, 0
-    return max(0, lo - k), min(w, hi + k)
-
-
-@njit(inline="always", fastmath=_FM)
-def _terms(m0, m1, m2, m3, m4, q):  # pragma: no cover - numba
-    """mu_x, mu_y and the four factors of SSIM = (a1 a2) / (b1 b2) at column q of the blurred moments m0..m4
-    (x, y, x^2, y^2, x y)."""
-    mx = m0[q]
-    my = m1[q]
-    a1 = _F32(2.0) * mx * my + _C1
-    a2 = _F32(2.0) * (m4[q] - mx * my) + _C2
-    b1 = mx * mx + my * my + _C1
-    b2 = m2[q] + m3[q] - mx * mx - my * my + _C2
-    return mx, my, a1, a2, b1, b2
-
-
-@njit(inline="always", fastmath=_FM)
-def _ssim_row(m0, m1, m2, m3, m4):  # pragma: no cover - numba
-    """Sum of the SSIM map over (part of) one row from its blurred moments m0..m4."""
-    s_row = _F32(0.0)
-    for q in range(m0.shape[0]):
-        _, _, a1, a2, b1, b2 = _terms(m0, m1, m2, m3, m4, q)
-        s_row += (a1 * a2) / (b1 * b2)
-    return s_row
-
-
-@njit(inline="always", fastmath=_FM)
-def _ssim_row_grad(m0, m1, m2, m3, m4, d0, d1, d2):  # pragma: no cover - numba
-    """As :func:`_ssim_row`, also writing dS/dmu_x, dS/dE[x^2], dS/dE[x y] into d0, d1, d2."""
-    s_row = _F32(0.0)
-    for q in range(m0.shape[0]):
-        mx, my, a1, a2, b1, b2 = _terms(m0, m1, m2, m3, m4, q)
-        ib1 = _F32(1.0) / b1  # b1 >= C1, b2 >= C2 (up to rounding): never zero
-        ib2 = _F32(1.0) / b2
-        ib = ib1 * ib2
-        s = a1 * a2 * ib
-        s_row += s
-        # no division by a1 or a2: a2 = 2 cov(x, y) + C2 is exactly zero where a negative covariance cancels C2,
-        # and the former s / a2 was then 0 * inf = NaN in the gradient of a finite loss
-        d0[q] = _F32(2.0) * (my * (a2 - a1) * ib + mx * s * (ib2 - ib1))
-        d1[q] = -s * ib2
-        d2[q] = _F32(2.0) * a1 * ib
-    return s_row
 
 
 @njit(parallel=True, fastmath=_FM, cache=True, error_model="numpy")
