@@ -188,6 +188,24 @@ def test_stage_meter_counts_the_cpu_of_waited_for_children():
     assert 0.3 <= m.cpu_seconds < m.seconds and m.peak_rss_mb > 0
 
 
+def test_an_image_cut_short_gives_one_clear_line(tmp_path, capfd):
+    """A PNG cut short is an error naming it, and libpng's "libpng error: Read Error" does not reach the terminal raw;
+    a whole image is read as it is."""
+    import cv2
+
+    from plantsplat.io import cut_short, read_image
+
+    ok, data = cv2.imencode(".png", np.random.default_rng(0).integers(0, 255, (64, 64, 3), dtype=np.uint8))
+    whole, short = tmp_path / "whole.png", tmp_path / "short.png"
+    whole.write_bytes(data.tobytes())
+    short.write_bytes(data.tobytes()[: len(data) // 2])
+    assert not cut_short(whole) and cut_short(short) and not cut_short(tmp_path / "missing.png")
+    assert read_image(whole).shape == (64, 64, 3)
+    with pytest.raises(PlantsplatError, match="short.png: unreadable"):
+        read_image(short)
+    assert "libpng" not in capfd.readouterr().err
+
+
 def test_images_read_in_threads_leave_stderr_where_it_was(tmp_path):
     """The segment stage reads frames in two threads (GrabCut in a pool), and each quiet read sends the process's
     stderr to a scratch file for a moment to catch libjpeg's complaints. Two such moments overlapping left stderr in a

@@ -218,19 +218,23 @@ def write_image_atomic(path: str | os.PathLike, image: np.ndarray) -> None:
 _STDERR_REDIRECT = threading.Lock()
 """Held while the process's stderr is sent elsewhere: the file descriptor is the process's, not a thread's, and two
 threads redirecting it at once restore each other's sink instead of the real stderr."""
-JPEG_TAIL_BYTES = 4096
-"""Bytes at a JPEG's end searched for its end-of-image marker (some cameras pad the file after it)."""
+TAIL_BYTES = 4096
+"""Bytes at an image file's end searched for its end marker (some cameras pad a JPEG after it)."""
+END_MARKERS = {b"\xff\xd8": b"\xff\xd9", b"\x89PNG\r\n\x1a\n": b"IEND"}
+"""Each format's first bytes and the marker its last bytes hold: JPEG's end-of-image, PNG's IEND chunk."""
 
 
-def jpeg_cut_short(path: str | os.PathLike) -> bool:
-    """Whether ``path`` is a JPEG whose data stops before its end-of-image marker (a copy or download cut short)."""
+def cut_short(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a JPEG or PNG whose data stops before its end marker (a copy or download cut short)."""
     try:
         with open(path, "rb") as f:
-            if f.read(2) != b"\xff\xd8":
+            head = f.read(8)
+            end = next((e for start, e in END_MARKERS.items() if head.startswith(start)), None)
+            if end is None:
                 return False
             size = f.seek(0, os.SEEK_END)
-            f.seek(max(2, size - JPEG_TAIL_BYTES))
-            return b"\xff\xd9" not in f.read()
+            f.seek(max(len(head), size - TAIL_BYTES))
+            return end not in f.read()
     except OSError:
         return False  # the decoder says the file is unreadable
 
@@ -251,17 +255,18 @@ def native_stderr_silenced() -> Iterator[None]:
 
 
 def imread_quietly(path: str | os.PathLike, flag: int) -> np.ndarray | None:
-    """``cv2.imread`` of a user's photo where a JPEG cut short gives one warning naming the file instead of
-    libjpeg's raw "Premature end of JPEG file". The file is checked before decoding, so that the process's stderr
-    is left alone for every whole file (other threads log and draw progress bars on it)."""
+    """``cv2.imread`` where a JPEG or PNG cut short gives one warning naming the file (or, undecodable, None for the
+    caller's error) instead of the decoder's raw "Premature end of JPEG file" or "libpng error: Read Error". The file
+    is checked before decoding, so that the process's stderr is left alone for every whole file (other threads log
+    and draw progress bars on it)."""
     import cv2  # deferred: OpenCV is slow to load, and the CLI imports this module
 
-    if not jpeg_cut_short(path):
+    if not cut_short(path):
         return cv2.imread(str(path), flag)
     with native_stderr_silenced():
         img = cv2.imread(str(path), flag)
     if img is not None:
-        log.warning("%s: damaged image (premature end of JPEG file); it is used as far as it could be decoded", path)
+        log.warning("%s: damaged image (the file is cut short); it is used as far as it could be decoded", path)
     return img
 
 
