@@ -221,12 +221,12 @@ def _write_outputs(ws: Workspace, names: list[str], masks: dict[str, np.ndarray]
                                             "so the quick 3D model started from random ones: run the poses stage's "
                                             "SfM, or pass --import-masks DIR" if info.get("sfm_points") == 0 else
                                             "check the capture and the poses") + "; nothing was written")
-    with staged_dir(ws.masks_dir) as masks_dir, staged_dir(ws.rgba_dir) as rgba_dir:
-        for n in progress(names, "segment: writing masks and RGBA"):
-            m8 = masks[n].astype(np.uint8) * 255 if n in masks else np.zeros(shape, np.uint8)
-            _write_png(masks_dir / n, m8)
-            bgr = cv2.cvtColor(read_image(ws.images_dir / n), cv2.COLOR_RGB2BGR)
-            _write_png(rgba_dir / n, cv2.merge([*cv2.split(bgr), m8]))
+    # every core: decoding and encoding PNGs release the GIL; the pool ends before a failed write's folders go
+    with staged_dir(ws.masks_dir) as masks_dir, staged_dir(ws.rgba_dir) as rgba_dir, \
+            ThreadPoolExecutor(max_workers=usable_cores()) as pool:
+        written = pool.map(lambda n: _write_frame(ws.images_dir / n, masks.get(n), shape, masks_dir, rgba_dir), names)
+        for _ in progress(written, "segment: writing masks and RGBA", total=len(names)):
+            pass
     conf = [r["confidence"] for r in per_frame if r.get("confidence") is not None]
     fg = [r["foreground_fraction"] for r in per_frame]
     out = {
@@ -253,6 +253,14 @@ def _write_outputs(ws: Workspace, names: list[str], masks: dict[str, np.ndarray]
              f", confidence {out['confidence']['mean']:.2f} (least sure {out['confidence']['min']:.2f})" if conf else "",
              out["timing"]["seconds_per_frame"])
     return out
+
+
+def _write_frame(frame: Path, mask: np.ndarray | None, shape: tuple, masks_dir: Path, rgba_dir: Path) -> None:
+    """One frame's mask (all background when it has none) and its RGBA image, under the frame's name."""
+    m8 = mask.astype(np.uint8) * 255 if mask is not None else np.zeros(shape, np.uint8)
+    _write_png(masks_dir / frame.name, m8)
+    bgr = cv2.cvtColor(read_image(frame), cv2.COLOR_RGB2BGR)
+    _write_png(rgba_dir / frame.name, cv2.merge([*cv2.split(bgr), m8]))
 
 
 def _preview(ws: Workspace, names: list[str], per_frame: list[dict], excluded: set[str]) -> None:
