@@ -14,6 +14,7 @@ Usage:
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,6 +26,7 @@ from plantsplat.io import read_image, read_json, write_json_atomic
 from plantsplat.log import get_logger, progress
 from plantsplat.ply import read_point_cloud
 from plantsplat.pycolmap_loader import load_pycolmap
+from plantsplat.resources import usable_cores
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
@@ -134,6 +136,32 @@ def _undistort(img: np.ndarray, view: View, nearest: bool) -> np.ndarray:
     return cv2.remap(img, m1, m2, cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
 
+def _load_frame(ws: Workspace, name: str, v: View, source: str, need_masks: bool) -> View:
+    """Frame ``name``'s image and, when it has one, its mask, undistorted into its camera ``v``; returns ``v``."""
+    img = read_image(ws.images_dir / name, "rgb")
+    if img.shape[:2] != (v.height, v.width):
+        raise PlantsplatError(
+            f"{ws.images_dir / name}: {img.shape[1]}x{img.shape[0]} but its camera in {source} is "
+            f"{v.width}x{v.height}; re-run `plantsplat poses {ws.root}`"
+        )
+    v.image = _undistort(img, v, nearest=False)
+    mpath = ws.masks_dir / name
+    if mpath.is_file():
+        m = read_image(mpath, "gray")
+        if m.shape != img.shape[:2]:
+            raise PlantsplatError(
+                f"{mpath}: {m.shape[1]}x{m.shape[0]} but the frame is {img.shape[1]}x{img.shape[0]}; "
+                f"re-run `plantsplat segment {ws.root}`"
+            )
+        v.mask = _undistort(m, v, nearest=True)
+    elif need_masks:
+        raise PlantsplatError(
+            f"{mpath}: missing mask (object mode needs one per frame); run `plantsplat segment {ws.root}` "
+            "or train with --mode full"
+        )
+    return v
+
+
 def excluded_frames(ws: Workspace) -> dict[str, str]:
     """Frames the segment stage found no plant in (``segment.json``'s ``excluded``): ``{name: reason}``."""
     if not ws.segment_json.is_file():
@@ -187,34 +215,14 @@ def load_scene(ws: Workspace, need_masks: bool, load_images: bool = True, skip_e
             f"{source}: only {len(posed)} of the frames in {ws.images_dir} have a pose; the poses do not match "
             f"the images; re-run `plantsplat poses {ws.root}`"
         )
-    views = []
-    items = progress(posed, "loading frames") if load_images else posed
-    for name in items:
-        v = cams[name]
-        if load_images:
-            img = read_image(ws.images_dir / name, "rgb")
-            if img.shape[:2] != (v.height, v.width):
-                raise PlantsplatError(
-                    f"{ws.images_dir / name}: {img.shape[1]}x{img.shape[0]} but its camera in {source} is "
-                    f"{v.width}x{v.height}; re-run `plantsplat poses {ws.root}`"
-                )
-            v.image = _undistort(img, v, nearest=False)
-            mpath = ws.masks_dir / name
-            if mpath.is_file():
-                m = read_image(mpath, "gray")
-                if m.shape != img.shape[:2]:
-                    raise PlantsplatError(
-                        f"{mpath}: {m.shape[1]}x{m.shape[0]} but the frame is {img.shape[1]}x{img.shape[0]}; "
-                        f"re-run `plantsplat segment {ws.root}`"
-                    )
-                v.mask = _undistort(m, v, nearest=True)
-            elif need_masks:
-                raise PlantsplatError(
-                    f"{mpath}: missing mask (object mode needs one per frame); run `plantsplat segment {ws.root}` "
-                    "or train with --mode full"
-                )
+    if load_images:  # on every core: decoding and undistorting release the GIL; in frame order either way
+        with ThreadPoolExecutor(max_workers=usable_cores()) as pool:
+            loaded = pool.map(lambda n: _load_frame(ws, n, cams[n], source, need_masks), posed)
+            views = list(progress(loaded, "loading frames", total=len(posed)))
+    else:
+        views = [cams[n] for n in posed]
+    for v in views:
         v.dist = np.zeros(0)  # pinhole from here on
-        views.append(v)
     return Scene(views, np.asarray(pts, np.float64).reshape(-1, 3), np.asarray(cols, np.uint8).reshape(-1, 3), source)
 
 
