@@ -93,6 +93,25 @@ def _hblur(p, o, g):  # pragma: no cover - numba
                     p[q + 6 * _C], p[q + 7 * _C], p[q + 8 * _C], p[q + 9 * _C], p[q + 10 * _C])
 
 
+@njit(inline="always", fastmath=_FM)
+def _vblur5(xs, ys, g, p0, p1, p2, p3, p4):  # pragma: no cover - numba
+    """The five local moments (x, y, x^2, y^2, x y) of the 11 rows ``xs`` and ``ys`` (from :func:`_rows11`) blurred
+    vertically, column by column, into p0..p4 (as long as the rows)."""
+    for q in range(p0.shape[0]):
+        a0, a1, a2, a3, a4, a5 = xs[0][q], xs[1][q], xs[2][q], xs[3][q], xs[4][q], xs[5][q]
+        a6, a7, a8, a9, a10 = xs[6][q], xs[7][q], xs[8][q], xs[9][q], xs[10][q]
+        v0, v1, v2, v3, v4, v5 = ys[0][q], ys[1][q], ys[2][q], ys[3][q], ys[4][q], ys[5][q]
+        v6, v7, v8, v9, v10 = ys[6][q], ys[7][q], ys[8][q], ys[9][q], ys[10][q]
+        p0[q] = _sym(g, a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10)
+        p1[q] = _sym(g, v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10)
+        p2[q] = _sym(g, a0 * a0, a1 * a1, a2 * a2, a3 * a3, a4 * a4, a5 * a5, a6 * a6, a7 * a7, a8 * a8, a9 * a9,
+                     a10 * a10)
+        p3[q] = _sym(g, v0 * v0, v1 * v1, v2 * v2, v3 * v3, v4 * v4, v5 * v5, v6 * v6, v7 * v7, v8 * v8, v9 * v9,
+                     v10 * v10)
+        p4[q] = _sym(g, a0 * v0, a1 * v1, a2 * v2, a3 * v3, a4 * v4, a5 * v5, a6 * v6, a7 * v7, a8 * v8, a9 * v9,
+                     a10 * v10)
+
+
 @njit(parallel=True, fastmath=_FM, cache=True, error_model="numpy")
 def _map(x, y, g, out):  # pragma: no cover - numba
     """The SSIM map of x against y (interleaved [H, W*3]) into out: the moments blurred vertically from the 11 rows
@@ -106,19 +125,9 @@ def _map(x, y, g, out):  # pragma: no cover - numba
         for i in range(b * _BLOCK, min(h, (b + 1) * _BLOCK)):
             xs = _rows11(x, i, zero, 0, n)
             ys = _rows11(y, i, zero, 0, n)
-            for q in range(n):
-                a0, a1, a2, a3, a4, a5 = xs[0][q], xs[1][q], xs[2][q], xs[3][q], xs[4][q], xs[5][q]
-                a6, a7, a8, a9, a10 = xs[6][q], xs[7][q], xs[8][q], xs[9][q], xs[10][q]
-                v0, v1, v2, v3, v4, v5 = ys[0][q], ys[1][q], ys[2][q], ys[3][q], ys[4][q], ys[5][q]
-                v6, v7, v8, v9, v10 = ys[6][q], ys[7][q], ys[8][q], ys[9][q], ys[10][q]
-                pad[0, _R * _C + q] = _sym(g, a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10)
-                pad[1, _R * _C + q] = _sym(g, v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10)
-                pad[2, _R * _C + q] = _sym(g, a0 * a0, a1 * a1, a2 * a2, a3 * a3, a4 * a4, a5 * a5, a6 * a6, a7 * a7,
-                                           a8 * a8, a9 * a9, a10 * a10)
-                pad[3, _R * _C + q] = _sym(g, v0 * v0, v1 * v1, v2 * v2, v3 * v3, v4 * v4, v5 * v5, v6 * v6, v7 * v7,
-                                           v8 * v8, v9 * v9, v10 * v10)
-                pad[4, _R * _C + q] = _sym(g, a0 * v0, a1 * v1, a2 * v2, a3 * v3, a4 * v4, a5 * v5, a6 * v6, a7 * v7,
-                                           a8 * v8, a9 * v9, a10 * v10)
+            o0 = _R * _C
+            _vblur5(xs, ys, g, pad[0, o0:o0 + n], pad[1, o0:o0 + n], pad[2, o0:o0 + n], pad[3, o0:o0 + n],
+                    pad[4, o0:o0 + n])
             for m in range(5):
                 _hblur(pad[m], mu[m], g)
             o = out[i]
@@ -286,19 +295,7 @@ def _fwd(col, alpha, bg, y, g, want_grad, x, dmaps, sums, img, img_alpha, live, 
             p2 = pad[2, _R * _C + c0:_R * _C + c1]
             p3 = pad[3, _R * _C + c0:_R * _C + c1]
             p4 = pad[4, _R * _C + c0:_R * _C + c1]
-            for q in range(c1 - c0):
-                a0, a1, a2, a3, a4, a5 = xs[0][q], xs[1][q], xs[2][q], xs[3][q], xs[4][q], xs[5][q]
-                a6, a7, a8, a9, a10 = xs[6][q], xs[7][q], xs[8][q], xs[9][q], xs[10][q]
-                v0, v1, v2, v3, v4, v5 = ys[0][q], ys[1][q], ys[2][q], ys[3][q], ys[4][q], ys[5][q]
-                v6, v7, v8, v9, v10 = ys[6][q], ys[7][q], ys[8][q], ys[9][q], ys[10][q]
-                p0[q] = _sym(g, a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10)
-                p1[q] = _sym(g, v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10)
-                p2[q] = _sym(g, a0 * a0, a1 * a1, a2 * a2, a3 * a3, a4 * a4, a5 * a5, a6 * a6, a7 * a7, a8 * a8,
-                             a9 * a9, a10 * a10)
-                p3[q] = _sym(g, v0 * v0, v1 * v1, v2 * v2, v3 * v3, v4 * v4, v5 * v5, v6 * v6, v7 * v7, v8 * v8,
-                             v9 * v9, v10 * v10)
-                p4[q] = _sym(g, a0 * v0, a1 * v1, a2 * v2, a3 * v3, a4 * v4, a5 * v5, a6 * v6, a7 * v7, a8 * v8,
-                             a9 * v9, a10 * v10)
+            _vblur5(xs, ys, g, p0, p1, p2, p3, p4)
             L = q1 - q0
             for m in range(5):
                 _hblur(pad[m, q0:q1 + 2 * _R * _C], mu[m, :L], g)
