@@ -93,6 +93,13 @@ def _hblur(p, o, g):  # pragma: no cover - numba
                     p[q + 6 * _C], p[q + 7 * _C], p[q + 8 * _C], p[q + 9 * _C], p[q + 10 * _C])
 
 
+@njit(inline="always")
+def _row_scratch(n):  # pragma: no cover - numba
+    """A worker's buffers for rows of ``n`` floats: a zero row (above and below the image), the five vertically
+    blurred moments with ``_R`` pixels of zeros on each side (zero padding), and the five blurred horizontally."""
+    return np.zeros(n, np.float32), np.zeros((5, n + 2 * _R * _C), np.float32), np.empty((5, n), np.float32)
+
+
 @njit(inline="always", fastmath=_FM)
 def _vblur5(xs, ys, g, p0, p1, p2, p3, p4):  # pragma: no cover - numba
     """The five local moments (x, y, x^2, y^2, x y) of the 11 rows ``xs`` and ``ys`` (from :func:`_rows11`) blurred
@@ -119,9 +126,7 @@ def _map(x, y, g, out):  # pragma: no cover - numba
     h, n = y.shape
     nblk = (h + _BLOCK - 1) // _BLOCK
     for b in prange(nblk):
-        zero = np.zeros(n, np.float32)
-        pad = np.zeros((5, n + 2 * _R * _C), np.float32)  # borders stay zero (zero padding)
-        mu = np.empty((5, n), np.float32)
+        zero, pad, mu = _row_scratch(n)
         for i in range(b * _BLOCK, min(h, (b + 1) * _BLOCK)):
             xs = _rows11(x, i, zero, 0, n)
             ys = _rows11(y, i, zero, 0, n)
@@ -266,9 +271,7 @@ def _fwd(col, alpha, bg, y, g, want_grad, x, dmaps, sums, img, img_alpha, live, 
         rng[i, 1] = z
     nblk = (h + _BLOCK - 1) // _BLOCK
     for b in prange(nblk):
-        zero = np.zeros(n, np.float32)
-        pad = np.zeros((5, n + 2 * _R * _C), np.float32)  # borders stay zero (zero padding)
-        mu = np.empty((5, n), np.float32)
+        zero, pad, mu = _row_scratch(n)
         for i in range(b * _BLOCK, min(h, (b + 1) * _BLOCK)):
             q0 = rng[i, 0] * _C
             q1 = rng[i, 1] * _C
