@@ -225,8 +225,12 @@ def _write_outputs(ws: Workspace, names: list[str], masks: dict[str, np.ndarray]
     with staged_dir(ws.masks_dir) as masks_dir, staged_dir(ws.rgba_dir) as rgba_dir, \
             ThreadPoolExecutor(max_workers=usable_cores()) as pool:
         written = pool.map(lambda n: _write_frame(ws.images_dir / n, masks.get(n), shape, masks_dir, rgba_dir), names)
-        for _ in progress(written, "segment: writing masks and RGBA", total=len(names)):
-            pass
+        try:
+            for _ in progress(written, "segment: writing masks and RGBA", total=len(names)):
+                pass
+        except BaseException:  # a failed write or Ctrl-C: the frames not started are not written
+            pool.shutdown(cancel_futures=True)
+            raise
     conf = [r["confidence"] for r in per_frame if r.get("confidence") is not None]
     fg = [r["foreground_fraction"] for r in per_frame]
     out = {

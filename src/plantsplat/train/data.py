@@ -218,7 +218,11 @@ def load_scene(ws: Workspace, need_masks: bool, load_images: bool = True, skip_e
     if load_images:  # on every core: decoding and undistorting release the GIL; in frame order either way
         with ThreadPoolExecutor(max_workers=usable_cores()) as pool:
             loaded = pool.map(lambda n: _load_frame(ws, n, cams[n], source, need_masks), posed)
-            views = list(progress(loaded, "loading frames", total=len(posed)))
+            try:
+                views = list(progress(loaded, "loading frames", total=len(posed)))
+            except BaseException:  # a frame's error or Ctrl-C: the frames not started are not loaded
+                pool.shutdown(cancel_futures=True)
+                raise
     else:
         views = [cams[n] for n in posed]
     for v in views:
