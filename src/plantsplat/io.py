@@ -215,9 +215,9 @@ def write_image_atomic(path: str | os.PathLike, image: np.ndarray) -> None:
             raise PlantsplatError(f"{path}: could not write image")
 
 
-_STDERR_REDIRECT = threading.Lock()
+_STDERR_REDIRECT = threading.RLock()
 """Held while the process's stderr is sent elsewhere: the file descriptor is the process's, not a thread's, and two
-threads redirecting it at once restore each other's sink instead of the real stderr."""
+threads redirecting it at once restore each other's sink instead of the real stderr (one thread may nest them)."""
 TAIL_BYTES = 4096
 """Bytes at an image file's end searched for its end marker (some cameras pad a JPEG after it)."""
 END_MARKERS = {b"\xff\xd8": b"\xff\xd9", b"\x89PNG\r\n\x1a\n": b"IEND"}
@@ -241,8 +241,9 @@ def cut_short(path: str | os.PathLike) -> bool:
 
 @contextlib.contextmanager
 def native_stderr_silenced() -> Iterator[None]:
-    """Send what C libraries print on the process's stderr during the block nowhere. The descriptor is the
-    process's: whatever another thread prints meanwhile is lost too, so this is kept to a damaged file's decoding."""
+    """Send what C libraries print on the process's stderr during the block nowhere (Python's own writes to it
+    too). The descriptor is the process's: whatever another thread prints meanwhile is lost as well, so this is kept
+    to short blocks (a damaged file's decoding, COLMAP's calls)."""
     with _STDERR_REDIRECT, open(os.devnull, "wb") as sink:
         sys.stderr.flush()
         saved = os.dup(2)
@@ -250,6 +251,7 @@ def native_stderr_silenced() -> Iterator[None]:
             os.dup2(sink.fileno(), 2)
             yield
         finally:
+            sys.stderr.flush()
             os.dup2(saved, 2)
             os.close(saved)
 

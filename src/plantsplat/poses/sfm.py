@@ -30,6 +30,7 @@ import numpy as np
 
 import plantsplat
 from plantsplat.errors import PlantsplatError
+from plantsplat.io import native_stderr_silenced
 from plantsplat.log import get_logger
 
 log = get_logger(__name__)
@@ -79,8 +80,8 @@ def colmap_logging(verbose: bool):
     """Silence COLMAP's output on stderr unless ``verbose`` (restored afterwards).
 
     glog's level is raised to errors, and file descriptor 2 is sent to /dev/null for the duration
-    because some pycolmap calls (bundle adjustment) print their reports regardless of the level.
-    Do not log from inside this block: it would be swallowed too.
+    (:func:`plantsplat.io.native_stderr_silenced`) because some pycolmap calls (bundle adjustment) print
+    their reports regardless of the level. Do not log from inside this block: it would be swallowed too.
     """
     import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
@@ -91,17 +92,10 @@ def colmap_logging(verbose: bool):
     old_v = pycolmap.logging.verbose_level
     pycolmap.logging.minloglevel = 2  # errors only
     pycolmap.logging.verbose_level = 0
-    sys.stderr.flush()
-    saved = os.dup(2)
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, 2)
-    os.close(devnull)
     try:
-        yield
+        with native_stderr_silenced():
+            yield
     finally:
-        sys.stderr.flush()
-        os.dup2(saved, 2)
-        os.close(saved)
         pycolmap.logging.minloglevel = old
         pycolmap.logging.verbose_level = old_v
 
