@@ -218,7 +218,7 @@ def test_fused_loss_skips_windows_where_render_and_target_agree(case):
         out.append((float(loss), float(mse), c.grad.double(), al.grad.double()))
     (lf, mf, cf, af), (lr, mr, cr, ar) = out
     assert abs(lf - lr) < 1e-6 and abs(mf - mr) < 1e-6
-    x, y, _, (_, rng), _ = S._run_fwd(color, alpha[..., 0].numpy().copy(), bg.numpy(), frame, True, ga)
+    x, y, (_, rng), _ = S._run_fwd(color, alpha[..., 0].numpy().copy(), bg.numpy(), frame, True, ga)
     differs = (x.reshape(h, w, 3) != y.reshape(h, w, 3)).any(axis=2).astype(np.uint8)
     box = np.ones((11, 11), np.uint8)
     windows = cv2.dilate(differs, box, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0

@@ -53,6 +53,8 @@ def _window(sigma: float = 1.5) -> np.ndarray:
     return (g / g.sum()).astype(np.float32)
 
 
+_TAPS = _window()[: _R + 1].copy()
+"""The six distinct taps of the symmetric 11-tap window, as the kernels take it."""
 _BLOCK = 32  # output rows per parallel task
 
 
@@ -376,7 +378,6 @@ def _strided_rows(t: Tensor) -> np.ndarray:
 def _run_fwd(col: Tensor, alpha: np.ndarray, bg: np.ndarray, gt: Tensor, want_grad: bool,
              gt_alpha: Tensor | None = None):
     c = _rows(col)
-    g = _window()[: _R + 1].copy()  # the six distinct taps of the symmetric window
     if gt_alpha is None:
         y = _rows(gt)
         img, ga = _NO_ALPHA, _NO_ALPHA
@@ -390,9 +391,9 @@ def _run_fwd(col: Tensor, alpha: np.ndarray, bg: np.ndarray, gt: Tensor, want_gr
     sums = np.zeros((h, 3), np.float32)
     live = np.empty((h, 2), np.int64)
     rng = np.empty((h, 2), np.int64)
-    _fwd(c, alpha, bg, y, g, want_grad, x, dmaps, sums, img, ga, live, rng)
+    _fwd(c, alpha, bg, y, _TAPS, want_grad, x, dmaps, sums, img, ga, live, rng)
     tot = sums.astype(np.float64).sum(axis=0) / (h * n)  # mean SSIM, mean |x - y|, mean (x - y)^2
-    return x, y, g, (dmaps, rng), tot
+    return x, y, (dmaps, rng), tot
 
 
 _NO_ALPHA = np.empty((0, 0), np.float32)
@@ -403,17 +404,17 @@ class _SSIMCPU(torch.autograd.Function):
     def forward(ctx, pred, gt):
         h, w = pred.shape[:2]
         want = bool(ctx.needs_input_grad[0])
-        x, y, g, dmaps, tot = _run_fwd(pred, np.ones((h, w), np.float32), np.zeros(_C, np.float32), gt, want)
+        x, y, dmaps, tot = _run_fwd(pred, np.ones((h, w), np.float32), np.zeros(_C, np.float32), gt, want)
         if want:
-            ctx.saved = (x, y, g, dmaps, pred.shape)
+            ctx.saved = (x, y, dmaps, pred.shape)
         return pred.new_tensor(float(tot[0]))
 
     @staticmethod
     def backward(ctx, g_out):
-        x, y, g, (dmaps, rng), shape = ctx.saved
+        x, y, (dmaps, rng), shape = ctx.saved
         h, n = x.shape
         out = np.empty_like(x)
-        _bwd(dmaps, x, y, np.zeros(_C, np.float32), g, _F32(float(g_out) / (h * n)), _F32(0.0), out, _NO_ALPHA, rng)
+        _bwd(dmaps, x, y, np.zeros(_C, np.float32), _TAPS, _F32(float(g_out) / (h * n)), _F32(0.0), out, _NO_ALPHA, rng)
         return torch.from_numpy(out).view(shape).to(g_out.dtype), None
 
 
@@ -423,21 +424,21 @@ class _LossCPU(torch.autograd.Function):
         a = alpha.detach().to(torch.float32).contiguous().numpy().reshape(alpha.shape[0], alpha.shape[1])
         b = bg.detach().to(torch.float32).contiguous().numpy()
         want = bool(ctx.needs_input_grad[0] or ctx.needs_input_grad[1])
-        x, y, g, dmaps, tot = _run_fwd(color, a, b, gt, want, gt_alpha)
+        x, y, dmaps, tot = _run_fwd(color, a, b, gt, want, gt_alpha)
         if want:
-            ctx.saved = (x, b, y, g, dmaps, lam, color.shape, alpha.shape)
+            ctx.saved = (x, b, y, dmaps, lam, color.shape, alpha.shape)
         mse = color.new_tensor(float(tot[2]))
         ctx.mark_non_differentiable(mse)
         return color.new_tensor(float((1.0 - lam) * tot[1] + lam * (1.0 - tot[0]))), mse
 
     @staticmethod
     def backward(ctx, g_loss, g_mse):
-        x, b, y, g, (dmaps, rng), lam, cshape, ashape = ctx.saved
+        x, b, y, (dmaps, rng), lam, cshape, ashape = ctx.saved
         h, n = y.shape
         gl = float(g_loss) / (h * n)
         dcol = np.empty_like(x)
         dalpha = np.empty((ashape[0], ashape[1]), np.float32) if ctx.needs_input_grad[1] else _NO_ALPHA
-        _bwd(dmaps, x, y, b, g, _F32(-lam * gl), _F32((1.0 - lam) * gl), dcol, dalpha, rng)
+        _bwd(dmaps, x, y, b, _TAPS, _F32(-lam * gl), _F32((1.0 - lam) * gl), dcol, dalpha, rng)
         d_col = torch.from_numpy(dcol).view(cshape).to(g_loss.dtype)
         d_alpha = torch.from_numpy(dalpha).view(ashape).to(g_loss.dtype) if ctx.needs_input_grad[1] else None
         return d_col, d_alpha, None, None, None, None
@@ -479,7 +480,7 @@ def ssim_map_cpu(pred: Tensor, gt: Tensor) -> Tensor:
     _check(pred, gt, "ssim_map_cpu")
     x, y = _rows(pred), _rows(gt)
     out = np.empty_like(x)
-    _map(x, y, _window()[: _R + 1].copy(), out)
+    _map(x, y, _TAPS, out)
     return torch.from_numpy(out).view(pred.shape).to(pred.dtype)
 
 
