@@ -555,6 +555,25 @@ def test_visual_hull_keeps_an_object_hidden_from_some_views():
     assert len(strict) < len(pts) // 4
 
 
+def test_points_far_off_or_behind_a_view_are_outside_it_without_a_warning():
+    """A random start far from the cameras (imported cameras whose optical axes are nearly parallel put the
+    scene's centre 3e7 units away) projected pixel coordinates beyond int64: the cast warned ("invalid value").
+    Such points, and those behind the camera or in its plane, are outside; a point in view keeps its pixel."""
+    import warnings
+
+    from plantsplat.train.data import View, mean_colors, pixels_hit
+
+    K = np.array([[500.0, 0, 80], [0, 500.0, 60], [0, 0, 1]])
+    view = View("v", K, np.eye(4), 160, 120, image=np.full((120, 160, 3), 255, np.uint8))
+    pts = np.array([[0.0, 0.0, 2.0], [1e8, 0.0, 1e-12], [0.0, 0.0, -1.0], [1.0, 1.0, 0.0], [np.nan, 0.0, 1.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        inside, u, w = pixels_hit(pts, view)
+        colours = mean_colors(pts, [view])
+    assert inside.tolist() == [True, False, False, False, False] and (u[0], w[0]) == (80, 60)
+    assert colours[0] == pytest.approx([1.0, 1.0, 1.0]) and colours[1:] == pytest.approx(np.full((4, 3), 0.5))
+
+
 def _ring_views(n: int, K: np.ndarray, mask_fn) -> list:
     from plantsplat.train.data import View
 

@@ -288,6 +288,17 @@ def project(points: np.ndarray, view: View) -> tuple[np.ndarray, np.ndarray]:
     return uv, z
 
 
+def pixels_hit(points: np.ndarray, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which world points ``[P, 3]`` fall inside the view's image, in front of it, and the pixel each falls in:
+    ``(inside [P] bool, column [P], row [P])`` (column and row are meaningful where inside)."""
+    uv, z = project(points, view)
+    # behind the camera, or so far off the image that the integer cast would overflow: outside
+    uv = np.clip(np.where((z > 0)[:, None], np.nan_to_num(uv, nan=-1.0), -1.0), -1.0, max(view.width, view.height))
+    u = np.floor(uv[:, 0]).astype(np.int64)
+    w = np.floor(uv[:, 1]).astype(np.int64)
+    return (u >= 0) & (w >= 0) & (u < view.width) & (w < view.height), u, w
+
+
 def mask_votes(points: np.ndarray, views: list[View]) -> tuple[np.ndarray, np.ndarray]:
     """For each point: in how many views it projects inside the image, and inside the mask."""
     seen = np.zeros(len(points), np.int32)
@@ -295,10 +306,7 @@ def mask_votes(points: np.ndarray, views: list[View]) -> tuple[np.ndarray, np.nd
     for v in views:
         if v.mask is None:
             continue
-        uv, z = project(points, v)
-        u = np.floor(uv[:, 0]).astype(np.int64)
-        w = np.floor(uv[:, 1]).astype(np.int64)
-        ok = (z > 0) & (u >= 0) & (w >= 0) & (u < v.width) & (w < v.height)
+        ok, u, w = pixels_hit(points, v)
         seen += ok
         hit = np.zeros(len(points), bool)
         hit[ok] = v.mask[w[ok], u[ok]] > 127
@@ -434,10 +442,7 @@ def mean_colors(points: np.ndarray, views: list[View]) -> np.ndarray:
     for v in views:
         if v.image is None:
             continue
-        uv, z = project(points, v)
-        u = np.floor(uv[:, 0]).astype(np.int64)
-        w = np.floor(uv[:, 1]).astype(np.int64)
-        ok = (z > 0) & (u >= 0) & (w >= 0) & (u < v.width) & (w < v.height)
+        ok, u, w = pixels_hit(points, v)
         acc[ok] += v.image[w[ok], u[ok]] / 255.0
         cnt[ok] += 1
     out = np.full((len(points), 3), 0.5)
