@@ -7,18 +7,24 @@ Cameras carry errors of a few pixels and the quick model blurs thin parts, so :f
 the outline onto the image's own edges: OpenCV's GrabCut, started from the prior (sure inside, sure
 outside, undecided in a band along the outline, and the middle line of parts narrower than the band
 sure inside), learns the frame's plant and background colours and cuts along the strongest edges in
-the band.
+the band. GrabCut's cut prefers short outlines and drops parts a few pixels wide whatever their colour; in the
+prior's parts finer than the quick model can draw (:func:`unresolved_px`) each pixel goes instead where its colour
+is likelier under GrabCut's two colour models.
 
 Usage:
     plant, cube = object_prior(obj, view)
-    mask = refine(rgb, np.maximum(plant, cube), band_px=6)
+    mask = refine(rgb, np.maximum(plant, cube), band_px=6, thin_px=unresolved_px(rgb.shape, 360))
 """
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 import torch
+from scipy.special import logsumexp
+from scipy.stats import multivariate_normal
 
 from plantsplat.segment.object3d import ObjectModel, camera_points, render_values
 
@@ -26,8 +32,10 @@ SUBPIXEL_BITS = 4
 """The cube's silhouette is filled with its corners in fixed point with this many fractional bits (OpenCV's shift)."""
 NEAR_REACH = 1.2
 """Gaussians nearer a camera than the object's axis less this many times its reach are floaters of the quick model."""
-GRABCUT_MODEL_SIZE = 65
-"""Length of GrabCut's colour model arrays (OpenCV's fixed size: 5 Gaussians of 13 numbers)."""
+GRABCUT_COMPONENTS = 5
+"""Gaussians in each of GrabCut's colour models (OpenCV's fixed number)."""
+GRABCUT_MODEL_SIZE = 13 * GRABCUT_COMPONENTS
+"""Length of GrabCut's colour model arrays: per Gaussian a weight, a mean (3) and a covariance (9), in that order."""
 
 
 def cube_depth(cube, view) -> tuple[np.ndarray, np.ndarray]:
@@ -106,6 +114,19 @@ def to_frame(prior: np.ndarray, maps: tuple[np.ndarray, np.ndarray] | None) -> n
     return cv2.remap(prior, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
+def unresolved_px(frame_shape: tuple, scene_resolution: int) -> int:
+    """Width (frame pixels, odd) below which a part's outline is finer than the quick model, trained with
+    ``scene_resolution`` px on the frames' longest side, can draw: two of its pixels, rounded up."""
+    return 2 * math.ceil(max(frame_shape[:2]) / scene_resolution) + 1
+
+
+def narrow_parts(mask: np.ndarray, width_px: int) -> np.ndarray:
+    """The parts of ``mask`` (``[H, W]`` uint8 0/1) narrower than ``width_px``: those an opening by a disc that wide
+    removes. ``[H, W]`` bool"""
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (width_px, width_px))
+    return (mask > 0) & ~(cv2.dilate(cv2.erode(mask, disc), disc) > 0)
+
+
 def thin_ridge(mask: np.ndarray, disc: np.ndarray) -> np.ndarray:
     """The middle line of the thin parts of ``mask`` (``[H, W]`` uint8 0/1): the parts an opening by ``disc`` removes
     (narrower than it: petioles, stalks, stolons), at their local maxima of the distance to the outline, at least a
@@ -115,18 +136,22 @@ def thin_ridge(mask: np.ndarray, disc: np.ndarray) -> np.ndarray:
     narrower than the band has no sure core: on the foreign renders it cut most thin petioles out of the masks (a
     third of their pixels kept), and a flower on a thin stalk out of half the frames, which training then lost.
     """
-    thin = (mask > 0) & ~(cv2.dilate(cv2.erode(mask, disc), disc) > 0)
+    thin = narrow_parts(mask, disc.shape[0])
     dist = cv2.distanceTransform(mask, cv2.DIST_L2, 3)
     ridge = dist >= cv2.dilate(dist, np.ones((3, 3), np.uint8))  # [H, W]: no neighbour farther from the outline
     return thin & ridge & (dist >= 1.0)
 
 
-def refine(rgb: np.ndarray, prior: np.ndarray, band_px: int = 6, iterations: int = 3, margin_px: int = 24,
-           seed: int = 0) -> np.ndarray:
+def refine(rgb: np.ndarray, prior: np.ndarray, band_px: int = 6, thin_px: int = 0, iterations: int = 3,
+           margin_px: int = 24, seed: int = 0) -> np.ndarray:
     """The mask ``[H, W]`` bool: ``prior > 0.5`` with its outline moved onto the image's edges by GrabCut within
     ``band_px`` of it (in the prior's bounding box grown by ``margin_px``, where all the work is); the middle line of
-    the prior's parts narrower than the band stays plant (:func:`thin_ridge`). ``seed``: of GrabCut's k-means, so that
-    a frame's mask does not depend on the frames refined before it on the same thread."""
+    the prior's parts narrower than the band stays plant (:func:`thin_ridge`). In its parts narrower than ``thin_px``
+    (odd; 0: none), whose outline the prior cannot place, and in the pixels touching them, a pixel the cut left out is
+    plant when its colour is likelier under GrabCut's plant model than under its background model: the cut's
+    preference for short outlines drops thin petioles and stalks, one to three pixels wide, whatever their colour.
+    ``seed``: of GrabCut's k-means, so that a frame's mask does not depend on the frames refined before it on the same
+    thread."""
     fg = prior > 0.5
     if not fg.any():
         return fg
@@ -142,10 +167,38 @@ def refine(rgb: np.ndarray, prior: np.ndarray, band_px: int = 6, iterations: int
     m[crop > 0] = cv2.GC_PR_FGD
     m[shrunk] = cv2.GC_FGD
     m[thin_ridge(crop, k)] = cv2.GC_FGD  # a petiole the 3D decision found stays, however GrabCut's colours lean
+    cut = (m == cv2.GC_FGD) | (m == cv2.GC_PR_FGD)
     if (m == cv2.GC_FGD).any() and (m == cv2.GC_BGD).any():
         bgd, fgd = np.zeros((1, GRABCUT_MODEL_SIZE)), np.zeros((1, GRABCUT_MODEL_SIZE))
+        bgr = np.ascontiguousarray(rgb[y0:y1, x0:x1, ::-1])
         cv2.setRNGSeed(seed)  # GrabCut's k-means draws from this thread's generator: the same mask on any thread
-        cv2.grabCut(np.ascontiguousarray(rgb[y0:y1, x0:x1, ::-1]), m, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
+        cv2.grabCut(bgr, m, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
+        cut = (m == cv2.GC_FGD) | (m == cv2.GC_PR_FGD)
+        if thin_px > 1:  # the narrow parts and the pixels touching them: their true edge may lie a pixel beyond
+            near = cv2.dilate(narrow_parts(crop, thin_px).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+            left_out = near & ~cut
+            cut[left_out] = likelier_plant(bgr[left_out], fgd, bgd)
     out = np.zeros_like(fg)
-    out[y0:y1, x0:x1] = (m == cv2.GC_FGD) | (m == cv2.GC_PR_FGD)
+    out[y0:y1, x0:x1] = cut
     return out
+
+
+def likelier_plant(colours: np.ndarray, plant_model: np.ndarray, background_model: np.ndarray) -> np.ndarray:
+    """Whether each of ``colours`` ``[N, 3]`` is likelier under GrabCut's plant colour model than under its
+    background model (:func:`colour_log_likelihood`). ``[N]`` bool"""
+    if not len(colours):
+        return np.zeros(0, bool)
+    x = colours.astype(np.float64)
+    return colour_log_likelihood(plant_model, x) > colour_log_likelihood(background_model, x)
+
+
+def colour_log_likelihood(model: np.ndarray, colours: np.ndarray) -> np.ndarray:
+    """Log-likelihood of ``colours`` ``[N, 3]`` (in the image's channel order) under one of GrabCut's colour models
+    (``[1, GRABCUT_MODEL_SIZE]`` as ``cv2.grabCut`` fills it). ``[N]``"""
+    k = GRABCUT_COMPONENTS
+    flat = model.reshape(-1)
+    weights, means, covs = flat[:k], flat[k:4 * k].reshape(k, 3), flat[4 * k:13 * k].reshape(k, 3, 3)
+    used = np.flatnonzero(weights > 0)
+    logs = [np.log(weights[j]) + multivariate_normal(means[j], covs[j], allow_singular=True).logpdf(colours)
+            for j in used]
+    return logsumexp(np.stack(logs).reshape(len(used), -1), axis=0) if len(used) else np.full(len(colours), -np.inf)

@@ -51,7 +51,7 @@ from plantsplat.resources import usable_cores
 from plantsplat.segment.config import SegmentConfig
 from plantsplat.segment.decide import DecideConfig
 from plantsplat.segment.decision_figure import decision_figure
-from plantsplat.segment.frame import distortion_map, object_prior, refine, to_frame
+from plantsplat.segment.frame import distortion_map, object_prior, refine, to_frame, unresolved_px
 from plantsplat.segment.imports import import_masks
 from plantsplat.segment.object3d import object_model
 from plantsplat.segment.preview import contact_sheet
@@ -125,8 +125,7 @@ def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool 
                     continue
                 plant, cube = (to_frame(p, maps) for p in object_prior(obj, view))  # rendered here: numba's threads
                 prior = np.maximum(plant, cube)
-                pending.append((name, cube > 0.5, prior > 0.5,
-                                pool.submit(_refined, ws, name, prior, cfg.refine_band_px, cfg.seed)))
+                pending.append((name, cube > 0.5, prior > 0.5, pool.submit(_refined, ws, name, prior, cfg)))
                 while len(pending) > 2 * workers:  # a few frames in flight, not all of them in memory
                     _finish_mask(pending.popleft(), parts, facts)
             while pending:
@@ -140,9 +139,12 @@ def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool 
     return parts, facts, info
 
 
-def _refined(ws: Workspace, name: str, prior: np.ndarray, band_px: int, seed: int) -> np.ndarray:
+def _refined(ws: Workspace, name: str, prior: np.ndarray, cfg: SegmentConfig) -> np.ndarray:
     """Frame ``name``'s mask: the prior's outline refined on the frame (:func:`plantsplat.segment.frame.refine`)."""
-    return refine(read_image(ws.images_dir / name), prior, band_px, seed=seed) if band_px > 0 else prior > 0.5
+    if cfg.refine_band_px <= 0:
+        return prior > 0.5
+    return refine(read_image(ws.images_dir / name), prior, cfg.refine_band_px,
+                  unresolved_px(prior.shape, cfg.scene_resolution), seed=cfg.seed)
 
 
 def _finish_mask(item: tuple, parts: dict, facts: dict) -> None:

@@ -21,9 +21,9 @@ import numpy as np
 
 from plantsplat.cube import CubeSpec
 from plantsplat.errors import PlantsplatError
-from plantsplat.io import atomic_path
+from plantsplat.io import atomic_path, read_json
 from plantsplat.segment.config import SegmentConfig
-from plantsplat.segment.frame import object_prior, refine
+from plantsplat.segment.frame import object_prior, refine, unresolved_px
 from plantsplat.segment.object3d import ObjectModel
 from plantsplat.train.checkpoint import load_model
 from plantsplat.train.data import load_scene
@@ -36,6 +36,13 @@ SCENE_DIR = ".plantsplat/segment/scene"
 def scene_dir(ws: Workspace) -> Path:
     """Folder of the quick whole-scene model (:mod:`plantsplat.segment.scene`)."""
     return ws.root / SCENE_DIR
+
+
+def scene_resolution(ws: Workspace) -> int:
+    """Longest side (px) of the frames the quick model was trained on, as its run recorded it."""
+    path = scene_dir(ws) / "config.json"
+    recorded = read_json(path).get("resolved", {}).get("max_resolution") if path.is_file() else None
+    return int(recorded) if recorded else SegmentConfig().scene_resolution
 
 
 def save_object(ws: Workspace, obj) -> None:
@@ -70,10 +77,11 @@ def segment_images(ws: Workspace, images: dict[str, np.ndarray], band_px: int | 
     found, drawn into each camera and refined on the image."""
     obj, views = load_object(ws)
     band = SegmentConfig().refine_band_px if band_px is None else band_px
+    resolution = scene_resolution(ws)
     out = {}
     for name, rgb in images.items():
         prior = np.maximum(*object_prior(obj, views[name]))
         if prior.shape != rgb.shape[:2]:
             prior = cv2.resize(prior, (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_AREA)
-        out[name] = refine(rgb, prior, band) if band > 0 else prior > 0.5
+        out[name] = refine(rgb, prior, band, unresolved_px(rgb.shape, resolution)) if band > 0 else prior > 0.5
     return out
