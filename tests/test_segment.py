@@ -32,6 +32,7 @@ from plantsplat.segment.object3d import (
     ObjectModel,
     find_pot,
     in_view_share,
+    join_out_of_frame,
     object_model,
 )
 from plantsplat.segment.scores import mask_iou
@@ -247,6 +248,17 @@ def test_cube_prior_is_the_box_less_what_stands_in_front():
     assert hidden.sum() < 0.75 * cube.sum()
     ys = np.nonzero(cube > 0.5)[0]
     assert hidden[ys.max() - 2].max() < 0.5 and hidden[ys.min() + 2].max() > 0.5  # bottom hidden, top seen
+
+
+def test_join_out_of_frame_follows_a_chain_from_the_plant():
+    """A leaf tip that leaves the frames: a chain of pool Gaussians 0.5 apart from a plant Gaussian joins it; a
+    cluster of the pool 3.5 away does not, nor does the chain once a link is missing."""
+    mu = np.array([[0, 0, 0], [0.5, 0, 0], [1.0, 0, 0], [1.5, 0, 0], [5.0, 0, 0], [5.4, 0, 0]], float)
+    plant = np.array([True, False, False, False, False, False])
+    assert join_out_of_frame(mu, plant, np.array([1, 2, 3, 4, 5]), 0.6).tolist() == [False, True, True, True, False,
+                                                                                     False]
+    assert not join_out_of_frame(mu, plant, np.array([2, 3, 4, 5]), 0.6).any()
+    assert not join_out_of_frame(mu, np.zeros(6, bool), np.array([1, 2]), 0.6).any()
 
 
 def test_refine_moves_the_outline_onto_the_edges():

@@ -393,10 +393,28 @@ def plant_top(params: dict, plant: np.ndarray) -> float | None:
     return float(np.percentile(z[sure], TOP_PERCENTILE)) if sure.any() else None
 
 
+def join_out_of_frame(mu: np.ndarray, plant: np.ndarray, pool: np.ndarray, link: float) -> np.ndarray:
+    """The Gaussians of ``pool`` (indices into ``mu`` ``[N, 3]``) linked to the ``plant`` ``[N]`` bool Gaussians
+    through Gaussians of ``pool``, each step shorter than ``link``. ``[N]`` bool"""
+    joined = np.zeros(len(mu), bool)
+    if not len(pool) or not plant.any():
+        return joined
+    tree = cKDTree(mu[pool])
+    taken = np.zeros(len(pool), bool)
+    frontier = mu[plant]
+    while len(frontier):  # breadth first from the plant through the pool
+        hits = {j for near in tree.query_ball_point(frontier, link) for j in near}
+        new = np.array(sorted(j for j in hits if not taken[j]), int)
+        taken[new] = True
+        frontier = mu[pool[new]]
+    joined[pool[taken]] = True
+    return joined
+
+
 def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: np.ndarray, reach: float = 0.55,
                  min_in_view: float = 0.85, sfm_reach: float = 0.07, ground_cm: float = 1.0,
                  pot_margin_cm: float = 1.0, seed: int = 0, decide: DecideConfig | None = None,
-                 opaque: float = 0.2) -> ObjectModel:
+                 opaque: float = 0.2, joined_in_view: float = 0.5, join_reach: float = 0.02) -> ObjectModel:
     """Which Gaussians of a whole-scene model are the plant (see the module docstring).
 
     ``params``: the model (``means`` ``[N, 3]`` ...); ``views``: its cameras (``train.data.View``);
@@ -410,7 +428,10 @@ def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: n
     above the plant, where structure from motion, which needs texture seen from several frames,
     finds nothing. Within that region, ``decide`` (default :class:`DecideConfig`) weighs each
     Gaussian's colour and its neighbours (:func:`plantsplat.segment.decide.decide_plant`);
-    ``DecideConfig(enabled=False)`` decides by position alone.
+    ``DecideConfig(enabled=False)`` decides by position alone. A Gaussian of the region in view in fewer frames
+    than ``min_in_view`` but at least ``joined_in_view`` is plant when it joins the plant's body, within ``join_reach``
+    times the cameras' distance of it or of another such Gaussian (:func:`join_out_of_frame`): a leaf tip that
+    leaves the frames from the side.
     """
     c2ws = [np.linalg.inv(v.viewmat) for v in views]
     centre = orbit_axis(c2ws)
@@ -441,11 +462,15 @@ def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: n
             info["pot"] = pot.summary()
     candidate = np.zeros(len(mu), bool)
     idx = np.flatnonzero(region)
-    candidate[idx] = in_view_share(mu[idx], views) >= min_in_view
+    share = in_view_share(mu[idx], views)
+    candidate[idx] = share >= min_in_view
     plant = candidate
     decide = decide or DecideConfig()
     if decide.enabled:
         plant, info["decision"] = _weigh_evidence(params, mu, candidate, cam_radial, decide, sfm_distance)
+    joined = join_out_of_frame(mu, plant, idx[(share >= joined_in_view) & (share < min_in_view)], join_reach * cam_radial)
+    plant = plant | joined
+    info["joined_out_of_frame"] = int(joined.sum())
     part[candidate & ~plant] = PART_NAMES.index("set aside")
     part[plant] = PART_NAMES.index("plant")
     info["plant_gaussians"] = int(plant.sum())
