@@ -12,7 +12,8 @@ the ground at the origin). What holds in any room:
   centimetres near the axis is the pot (:func:`pot_solid`);
 - the room is far: the plant is in view in (nearly) every frame, while a Gaussian that stands in for
   a blank ceiling or wall at the wrong depth near the axis leaves the frame in many of them
-  (:func:`in_view_share`).
+  (:func:`in_view_share`); a leaf tip of a plant wider than the frames leaves some of them too, and
+  stays plant when it joins the plant's body (:func:`join_out_of_frame`).
 
 :func:`object_model` puts these together into an :class:`ObjectModel`: which Gaussians of the scene
 model are plant, and the cube. Without a calibrated cube there is no ground, pot or cube: the plant
