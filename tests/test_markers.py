@@ -114,11 +114,11 @@ def test_frames_detected_in_threads_give_what_one_thread_gives(tmp_path, monkeyp
         img = draw_marker(k % 3, CORNERS + 6.0 * k, 0.6) if k != 4 else np.full((480, 480), 128, np.uint8)
         cv2.imwrite(str(tmp_path / name), img)
         names.append(name)
-    import plantsplat.markers
+    import plantsplat.resources
 
     found = {}
     for threads in (1, 2):
-        monkeypatch.setattr(plantsplat.markers, "usable_cores", lambda n=threads: n)  # the pool's threads
+        monkeypatch.setattr(plantsplat.resources, "usable_cores", lambda n=threads: n)  # the pool's threads
         found[threads] = detect_frames(tmp_path, names)
     one, two = found[1], found[2]
     assert list(two.frames) == [n for n in names if n != "frame_00004.png"] and two.names == names

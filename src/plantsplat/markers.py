@@ -20,7 +20,6 @@ Example:
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,8 +30,8 @@ from scipy.optimize import least_squares
 from plantsplat.cube import CubeSpec
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_image, read_json, write_json_atomic
-from plantsplat.log import get_logger, progress
-from plantsplat.resources import usable_cores
+from plantsplat.log import get_logger
+from plantsplat.resources import map_on_cores
 
 log = get_logger(__name__)
 
@@ -209,12 +208,11 @@ def detect_frames(image_dir: Path, names: list[str], cube: CubeSpec = CubeSpec()
     the outcome does not depend on the number of threads."""
     raw: dict[str, dict[int, np.ndarray]] = {}
     shifts: list[float] = []
-    with ThreadPoolExecutor(max_workers=usable_cores()) as pool:
-        found = pool.map(lambda n: _detect_one(Path(image_dir) / n, cube), names)
-        for name, (det, s) in progress(zip(names, found), "detecting the cube's markers", total=len(names)):
-            if det:
-                raw[name] = det
-                shifts.extend(s)
+    found = map_on_cores(lambda n: _detect_one(Path(image_dir) / n, cube), names, "detecting the cube's markers")
+    for name, (det, s) in zip(names, found):
+        if det:
+            raw[name] = det
+            shifts.extend(s)
     shift = float(np.median(shifts)) if len(shifts) >= MIN_SHIFT_SAMPLES else 0.0
     frames = {n: {m: shift_corners(c, shift) for m, c in d.items()} for n, d in raw.items()}
     log.info("markers: found in %d of %d frames; edge shift %.2f px (from %d detections)", len(frames), len(names),

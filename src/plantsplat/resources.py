@@ -15,9 +15,16 @@ import platform
 import resource
 import threading
 import time
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import TypeVar
 
 import plantsplat
+from plantsplat.log import progress
+
+T = TypeVar("T")
+R = TypeVar("R")
 
 
 def _read_status(key: str) -> float | None:
@@ -100,6 +107,20 @@ def usable_cores() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # no affinity on this platform (macOS)
         return os.cpu_count() or 1
+
+
+def map_on_cores(fn: Callable[[T], R], items: Iterable[T], description: str) -> Iterator[R]:
+    """``fn`` of each of ``items`` on :func:`usable_cores` threads (for work that releases the GIL: decoding, OpenCV),
+    yielded in the items' order under a progress bar; an error or Ctrl-C stops the items not yet started, and the pool
+    ends before the error goes on."""
+    items = list(items)
+    with ThreadPoolExecutor(max_workers=usable_cores()) as pool:
+        results = pool.map(fn, items)
+        try:
+            yield from progress(results, description, total=len(items))
+        except BaseException:
+            pool.shutdown(cancel_futures=True)
+            raise
 
 
 def machine_info() -> dict:

@@ -47,7 +47,7 @@ from plantsplat.io import (
 )
 from plantsplat.log import get_logger, progress
 from plantsplat.markers import recorded_cube
-from plantsplat.resources import usable_cores
+from plantsplat.resources import map_on_cores, usable_cores
 from plantsplat.segment.config import SegmentConfig
 from plantsplat.segment.decide import DecideConfig
 from plantsplat.segment.decision_figure import decision_figure
@@ -224,15 +224,10 @@ def _write_outputs(ws: Workspace, names: list[str], masks: dict[str, np.ndarray]
                                             "SfM, or pass --import-masks DIR" if info.get("sfm_points") == 0 else
                                             "check the capture and the poses") + "; nothing was written")
     # every core: decoding and encoding PNGs release the GIL; the pool ends before a failed write's folders go
-    with staged_dir(ws.masks_dir) as masks_dir, staged_dir(ws.rgba_dir) as rgba_dir, \
-            ThreadPoolExecutor(max_workers=usable_cores()) as pool:
-        written = pool.map(lambda n: _write_frame(ws.images_dir / n, masks.get(n), shape, masks_dir, rgba_dir), names)
-        try:
-            for _ in progress(written, "segment: writing masks and RGBA", total=len(names)):
-                pass
-        except BaseException:  # a failed write or Ctrl-C: the frames not started are not written
-            pool.shutdown(cancel_futures=True)
-            raise
+    with staged_dir(ws.masks_dir) as masks_dir, staged_dir(ws.rgba_dir) as rgba_dir:
+        for _ in map_on_cores(lambda n: _write_frame(ws.images_dir / n, masks.get(n), shape, masks_dir, rgba_dir),
+                              names, "segment: writing masks and RGBA"):
+            pass
     conf = [r["confidence"] for r in per_frame if r.get("confidence") is not None]
     fg = [r["foreground_fraction"] for r in per_frame]
     out = {

@@ -14,7 +14,6 @@ Usage:
 from __future__ import annotations
 
 import math
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,10 +22,10 @@ import numpy as np
 
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_image, read_json, write_json_atomic
-from plantsplat.log import get_logger, progress
+from plantsplat.log import get_logger
 from plantsplat.ply import read_point_cloud
 from plantsplat.pycolmap_loader import load_pycolmap
-from plantsplat.resources import usable_cores
+from plantsplat.resources import map_on_cores
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
@@ -216,13 +215,7 @@ def load_scene(ws: Workspace, need_masks: bool, load_images: bool = True, skip_e
             f"the images; re-run `plantsplat poses {ws.root}`"
         )
     if load_images:  # on every core: decoding and undistorting release the GIL; in frame order either way
-        with ThreadPoolExecutor(max_workers=usable_cores()) as pool:
-            loaded = pool.map(lambda n: _load_frame(ws, n, cams[n], source, need_masks), posed)
-            try:
-                views = list(progress(loaded, "loading frames", total=len(posed)))
-            except BaseException:  # a frame's error or Ctrl-C: the frames not started are not loaded
-                pool.shutdown(cancel_futures=True)
-                raise
+        views = list(map_on_cores(lambda n: _load_frame(ws, n, cams[n], source, need_masks), posed, "loading frames"))
     else:
         views = [cams[n] for n in posed]
     for v in views:
