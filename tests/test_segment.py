@@ -3,8 +3,10 @@ the frame, imported masks, and a small capture end to end."""
 
 from __future__ import annotations
 
+import collections
 import json
 import shutil
+from pathlib import Path
 from types import SimpleNamespace
 
 import cv2
@@ -434,12 +436,20 @@ def segmented(synth_capture, tmp_path_factory):
     ws = Workspace(tmp_path_factory.mktemp("segment_e2e") / "ws")
     shutil.copytree(cap / "frames", ws.images_dir)
     poses_stage.run(ws, PosesConfig())
-    info = segment_stage(ws, SegmentConfig())
-    return cap, ws, info
+    reads = collections.Counter()  # the frames the stage decodes after its quick model
+
+    def counted(path, *args, **kwargs):
+        reads[Path(path).name] += Path(path).parent == ws.images_dir
+        return read_image(path, *args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(segmentation, "read_image", counted)
+        info = segment_stage(ws, SegmentConfig())
+    return cap, ws, info, reads
 
 
 def test_small_capture_masks_against_truth(segmented):
-    cap, ws, info = segmented
+    cap, ws, info, _ = segmented
     assert info["backend"] == "3d" and info["capture"]["calibrated"]
     assert info["capture"]["object"]["pot"]["rim_z_cm"] > 5
     excluded = {e["name"] for e in info["excluded"]}
@@ -459,7 +469,7 @@ def test_up_to_date_and_renders_cut_like_frames(segmented):
     from plantsplat.segment.stored import segment_images
     from plantsplat.train.data import load_scene
 
-    cap, ws, info = segmented
+    cap, ws, info, _ = segmented
     before = ws.segment_json.stat().st_mtime_ns
     assert segment_stage(ws, SegmentConfig())["up_to_date"]  # same frames, poses and options: not redone
     assert ws.segment_json.stat().st_mtime_ns == before
@@ -473,6 +483,16 @@ def test_up_to_date_and_renders_cut_like_frames(segmented):
     assert mask_iou(got, frame_mask) > 0.9
     half = cv2.resize(rgb, (view.width // 2, view.height // 2), interpolation=cv2.INTER_AREA)
     assert segment_images(ws, {name: half})[name].shape == half.shape[:2]
+
+
+def test_each_frame_decoded_once_for_its_mask_and_rgba(segmented):
+    """The mask step reads a frame once: GrabCut refines on it and its RGBA image is written from it (issue 43)."""
+    cap, ws, info, reads = segmented
+    assert reads == {n: 1 for n in ws.image_names()}
+    for name in ws.image_names()[:3]:
+        rgba = read_image(ws.rgba_dir / name, "rgba")
+        assert np.array_equal(rgba[..., :3], read_image(ws.images_dir / name))
+        assert np.array_equal(rgba[..., 3], read_image(ws.masks_dir / name, "gray"))
 
 
 # ------------------------------------------------------------------ SAM-2

@@ -100,8 +100,11 @@ def calibrated_cube(ws: Workspace):
     return recorded_cube(ws.markers_json) or CubeSpec()
 
 
-def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool = False):
-    """The ``3d`` backend: ``({name: (plant, cube) bool masks}, per-frame facts, capture facts)``."""
+def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool = False,
+              out_dirs: tuple[Path, Path] | None = None):
+    """The ``3d`` backend: ``({name: (plant, cube) bool masks}, per-frame facts, capture facts)``. ``out_dirs``:
+    ``(masks, rgba)`` folders each frame's mask and RGBA image are written into as soon as it is refined (the frame
+    decoded once); None: nothing is written."""
     t0 = time.perf_counter()
     params, views, points = scene_model(ws, cfg, resume)
     t_model = time.perf_counter() - t0
@@ -116,16 +119,18 @@ def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool 
     facts: dict[str, dict] = {}
     pending: deque = deque()  # (name, the cube's share, the prior's mask, the refined mask's future), in frame order
     workers = usable_cores()
-    with ThreadPoolExecutor(max_workers=workers) as pool:  # GrabCut releases the GIL
+    with ThreadPoolExecutor(max_workers=workers) as pool:  # GrabCut and PNG coding release the GIL
         try:
             for name in progress(names, "segment: masks from the 3D object"):
                 view = by_name.get(name)
                 if view is None:
                     facts[name] = {"confidence": None, "note": "no camera pose (not registered by the poses stage)"}
+                    if out_dirs is not None:
+                        pending.append((name, None, None, pool.submit(_frame_mask, ws, name, None, cfg, out_dirs)))
                     continue
                 plant, cube = (to_frame(p, maps) for p in object_prior(obj, view))  # rendered here: numba's threads
                 prior = np.maximum(plant, cube)
-                pending.append((name, cube > 0.5, prior > 0.5, pool.submit(_refined, ws, name, prior, cfg)))
+                pending.append((name, cube > 0.5, prior > 0.5, pool.submit(_frame_mask, ws, name, prior, cfg, out_dirs)))
                 while len(pending) > 2 * workers:  # a few frames in flight, not all of them in memory
                     _finish_mask(pending.popleft(), parts, facts)
             while pending:
@@ -139,18 +144,26 @@ def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool 
     return parts, facts, info
 
 
-def _refined(ws: Workspace, name: str, prior: np.ndarray, cfg: SegmentConfig) -> np.ndarray:
-    """Frame ``name``'s mask: the prior's outline refined on the frame (:func:`plantsplat.segment.frame.refine`)."""
-    if cfg.refine_band_px <= 0:
-        return prior > 0.5
-    return refine(read_image(ws.images_dir / name), prior, cfg.refine_band_px,
-                  unresolved_px(prior.shape, cfg.scene_resolution), seed=cfg.seed)
+def _frame_mask(ws: Workspace, name: str, prior: np.ndarray | None, cfg: SegmentConfig,
+                out_dirs: tuple[Path, Path] | None) -> np.ndarray | None:
+    """Frame ``name``'s mask: the prior's outline refined on the frame (:func:`plantsplat.segment.frame.refine`); None
+    without a prior (a frame with no camera). With ``out_dirs``, the mask and the RGBA image are written there."""
+    rgb = read_image(ws.images_dir / name) if out_dirs is not None or cfg.refine_band_px > 0 else None
+    mask = None
+    if prior is not None:
+        mask = prior > 0.5 if cfg.refine_band_px <= 0 else refine(
+            rgb, prior, cfg.refine_band_px, unresolved_px(prior.shape, cfg.scene_resolution), seed=cfg.seed)
+    if out_dirs is not None:
+        _write_frame(name, rgb, mask, *out_dirs)
+    return mask
 
 
 def _finish_mask(item: tuple, parts: dict, facts: dict) -> None:
     """A refined mask split into plant and cube, with the segmenter's confidence (how little refining moved it)."""
     name, cube, prior, future = item
     mask = future.result()
+    if mask is None:  # a frame without a camera, written out as all background
+        return
     parts[name] = (mask & ~cube, mask & cube)
     facts[name] = {"confidence": round(mask_iou(prior, mask), 4)}
 
@@ -181,17 +194,26 @@ def run(ws: Workspace | str | os.PathLike, cfg: SegmentConfig | None = None, res
         raise PlantsplatError(f"{ws.root}: no camera poses; run `plantsplat poses {ws.root}` first (the segmenter "
                               "decides the plant in 3D), or pass --import-masks DIR")
     t0 = time.perf_counter()
+    if cfg.import_masks is None and cfg.backend == "3d":  # masks and RGBA written as each frame is refined
+        with staged_dir(ws.masks_dir) as masks_dir, staged_dir(ws.rgba_dir) as rgba_dir:
+            parts, facts, info = _masks_3d(ws, names, cfg, resume, (masks_dir, rgba_dir))
+            masks = {n: p | c for n, (p, c) in parts.items()}
+            per_frame, excluded = _frame_rows(ws, names, masks, facts, info, cfg)  # raises: nothing is written
+        return _finish(ws, names, masks, per_frame, excluded, info, "3d", cfg, time.perf_counter() - t0)
     if cfg.import_masks is not None:
         masks, facts, info = import_masks(Path(cfg.import_masks), ws, names), {}, {"source": str(cfg.import_masks)}
         backend = "import"
     else:
         parts, facts, info = _masks_3d(ws, names, cfg, resume)
-        masks = {n: p | c for n, (p, c) in parts.items()}
-        backend = "3d"
-        if cfg.backend == "sam2":
-            masks, info["sam2"] = _sam2(ws, names, parts, cfg)
-            backend = "sam2"
-    return _write_outputs(ws, names, masks, facts, info, backend, cfg, time.perf_counter() - t0)
+        masks, info["sam2"] = _sam2(ws, names, parts, cfg)
+        backend = "sam2"
+    per_frame, excluded = _frame_rows(ws, names, masks, facts, info, cfg)
+    # every core: decoding and encoding PNGs release the GIL; the pool ends before a failed write's folders go
+    with staged_dir(ws.masks_dir) as masks_dir, staged_dir(ws.rgba_dir) as rgba_dir:
+        for _ in map_on_cores(lambda n: _write_frame(n, read_image(ws.images_dir / n), masks.get(n), masks_dir,
+                                                     rgba_dir), names, "segment: writing masks and RGBA"):
+            pass
+    return _finish(ws, names, masks, per_frame, excluded, info, backend, cfg, time.perf_counter() - t0)
 
 
 def _sam2(ws: Workspace, names: list[str], parts: dict, cfg: SegmentConfig):
@@ -203,10 +225,10 @@ def _sam2(ws: Workspace, names: list[str], parts: dict, cfg: SegmentConfig):
     return dict(zip(posed, out)), {"checkpoint": str(ckpt.resolve()), "config": config, **sam_info}
 
 
-def _write_outputs(ws: Workspace, names: list[str], masks: dict[str, np.ndarray], facts: dict[str, dict], info: dict,
-                   backend: str, cfg: SegmentConfig, seconds: float) -> dict:
-    """Masks, RGBA frames, the preview and ``segment.json``; the frames without a plant are listed."""
-    shape = next(iter(masks.values())).shape if masks else read_image(ws.images_dir / names[0], "gray").shape
+def _frame_rows(ws: Workspace, names: list[str], masks: dict[str, np.ndarray], facts: dict[str, dict], info: dict,
+                cfg: SegmentConfig) -> tuple[list[dict], list[dict]]:
+    """``segment.json``'s row of every frame and the frames without a plant; raises :class:`PlantsplatError` when
+    more than ``cfg.max_excluded`` of them have none."""
     per_frame, excluded = [], []
     for n in names:
         m = masks.get(n)
@@ -223,11 +245,13 @@ def _write_outputs(ws: Workspace, names: list[str], masks: dict[str, np.ndarray]
                                             "so the quick 3D model started from random ones: run the poses stage's "
                                             "SfM, or pass --import-masks DIR" if info.get("sfm_points") == 0 else
                                             "check the capture and the poses") + "; nothing was written")
-    # every core: decoding and encoding PNGs release the GIL; the pool ends before a failed write's folders go
-    with staged_dir(ws.masks_dir) as masks_dir, staged_dir(ws.rgba_dir) as rgba_dir:
-        for _ in map_on_cores(lambda n: _write_frame(ws.images_dir / n, masks.get(n), shape, masks_dir, rgba_dir),
-                              names, "segment: writing masks and RGBA"):
-            pass
+    return per_frame, excluded
+
+
+def _finish(ws: Workspace, names: list[str], masks: dict[str, np.ndarray], per_frame: list[dict], excluded: list[dict],
+            info: dict, backend: str, cfg: SegmentConfig, seconds: float) -> dict:
+    """The preview and ``segment.json`` (the masks and RGBA frames are written); returns ``segment.json``'s content."""
+    shape = next(iter(masks.values())).shape if masks else read_image(ws.images_dir / names[0], "gray").shape
     conf = [r["confidence"] for r in per_frame if r.get("confidence") is not None]
     fg = [r["foreground_fraction"] for r in per_frame]
     out = {
@@ -256,12 +280,11 @@ def _write_outputs(ws: Workspace, names: list[str], masks: dict[str, np.ndarray]
     return out
 
 
-def _write_frame(frame: Path, mask: np.ndarray | None, shape: tuple, masks_dir: Path, rgba_dir: Path) -> None:
-    """One frame's mask (all background when it has none) and its RGBA image, under the frame's name."""
-    m8 = mask.astype(np.uint8) * 255 if mask is not None else np.zeros(shape, np.uint8)
-    _write_png(masks_dir / frame.name, m8)
-    bgr = cv2.cvtColor(read_image(frame), cv2.COLOR_RGB2BGR)
-    _write_png(rgba_dir / frame.name, cv2.merge([*cv2.split(bgr), m8]))
+def _write_frame(name: str, rgb: np.ndarray, mask: np.ndarray | None, masks_dir: Path, rgba_dir: Path) -> None:
+    """One frame's mask (all background when it has none) and its RGBA image (``rgb``: the frame), under its name."""
+    m8 = mask.astype(np.uint8) * 255 if mask is not None else np.zeros(rgb.shape[:2], np.uint8)
+    _write_png(masks_dir / name, m8)
+    _write_png(rgba_dir / name, np.dstack([rgb[..., ::-1], m8]))
 
 
 def _preview(ws: Workspace, names: list[str], per_frame: list[dict], excluded: set[str]) -> None:
