@@ -33,9 +33,13 @@ from plantsplat.segment.object3d import (
     PART_NAMES,
     ObjectModel,
     find_pot,
+    footprints,
     in_view_share,
     join_out_of_frame,
     object_model,
+    overlapping,
+    render_values,
+    union_box,
 )
 from plantsplat.segment.scores import mask_iou
 from plantsplat.segment.stored import OBJECT_FILE, SCENE_DIR, save_object
@@ -250,6 +254,31 @@ def test_cube_prior_is_the_box_less_what_stands_in_front():
     assert hidden.sum() < 0.75 * cube.sum()
     ys = np.nonzero(cube > 0.5)[0]
     assert hidden[ys.max() - 2].max() < 0.5 and hidden[ys.min() + 2].max() > 0.5  # bottom hidden, top seen
+
+
+def test_footprints_hold_every_pixel_a_gaussian_draws():
+    """Drawn with only the Gaussians whose footprint reaches a box, the box's pixels are what all of them draw, and
+    outside the plant Gaussians' footprints nothing is plant (what object_prior relies on to skip the room)."""
+    rng = np.random.default_rng(4)
+    view = orbit_views()[5]
+    pts = rng.uniform([0, -10, 0], [50, 30, 40], (3000, 3))
+    params = gaussians(pts, size=0.8, opacity=0.6)
+    params["scales"] += torch.tensor(rng.normal(0, 0.6, (3000, 3)), dtype=torch.float32)  # small and large, flat
+    params["opacities"] = torch.tensor(rng.normal(0, 2, 3000), dtype=torch.float32)
+    plant = np.zeros(3000, bool)
+    plant[np.linalg.norm(pts[:, :2] - [25, 10], axis=1) < 6] = True
+    values = torch.zeros(3000, 3)
+    values[torch.from_numpy(plant)] = 1.0
+    boxes = footprints(params, view)
+    box = union_box(boxes[plant])
+    full, _ = render_values(params, values, view)
+    part, _ = render_values(params, values, view, keep=torch.from_numpy(overlapping(boxes, box)))
+    x0, y0, x1, y1 = np.clip(box, 0, [view.width, view.height, view.width, view.height])
+    assert 0 < (x1 - x0) * (y1 - y0) < 0.8 * view.width * view.height
+    np.testing.assert_allclose(part[y0:y1, x0:x1], full[y0:y1, x0:x1], atol=1e-6)
+    outside = np.ones(full.shape[:2], bool)
+    outside[y0:y1, x0:x1] = False
+    assert full[outside].max() == 0 and full[~outside, 0].max() > 0.1
 
 
 def test_join_out_of_frame_follows_a_chain_from_the_plant():

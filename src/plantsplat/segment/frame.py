@@ -26,7 +26,7 @@ import torch
 from scipy.special import logsumexp
 from scipy.stats import multivariate_normal
 
-from plantsplat.segment.object3d import ObjectModel, camera_points, render_values
+from plantsplat.segment.object3d import ObjectModel, camera_points, footprints, overlapping, render_values, union_box
 
 SUBPIXEL_BITS = 4
 """The cube's silhouette is filled with its corners in fixed point with this many fractional bits (OpenCV's shift)."""
@@ -66,7 +66,12 @@ def cube_depth(cube, view) -> tuple[np.ndarray, np.ndarray]:
 
 
 def object_prior(obj: ObjectModel, view) -> tuple[np.ndarray, np.ndarray]:
-    """How much of each pixel of ``view`` is plant, and is cube, in [0, 1]: ``(plant, cube)``, ``[H, W]`` float32."""
+    """How much of each pixel of ``view`` is plant, and is cube, in [0, 1]: ``(plant, cube)``, ``[H, W]`` float32.
+
+    Each is drawn with only the Gaussians whose footprint reaches its box (the plant Gaussians' footprints; the cube's
+    silhouette), so most of the frame's room is not composited: outside the box nothing is plant or cube, and inside
+    it the values are those of every Gaussian drawn (on 40 views of two captures the plant's bit for bit, the cube's
+    within 1.2e-7 on a few pixels: the CPU kernels' rounding)."""
     p = obj.params
     n = len(obj.plant)
     mu = p["means"].numpy()
@@ -75,13 +80,14 @@ def object_prior(obj: ObjectModel, view) -> tuple[np.ndarray, np.ndarray]:
     # nothing stands between the camera and the object (the filmer walks there): Gaussians nearer than the object's
     # region are floaters of the quick model, which can hang in front of one camera and veil the whole frame
     axis_depth = float(view.viewmat[2, :3] @ obj.axis + view.viewmat[2, 3])
-    keep_np = camera_points(mu, view)[1] > axis_depth - NEAR_REACH * obj.info["reach"]
+    keep = camera_points(mu, view)[1] > axis_depth - NEAR_REACH * obj.info["reach"]
     cube = np.zeros((view.height, view.width), np.float32)
     if obj.cube is not None:  # Gaussians of the cube give way to the exact cube
         h = obj.cube.size / 2
-        keep_np &= ~((np.abs(mu[:, 0]) < h) & (np.abs(mu[:, 1]) < h) & (mu[:, 2] > 0) & (mu[:, 2] < obj.cube.size))
-    keep = torch.from_numpy(keep_np)
-    img, _ = render_values(p, plant, view, keep=keep)
+        keep &= ~((np.abs(mu[:, 0]) < h) & (np.abs(mu[:, 1]) < h) & (mu[:, 2] > 0) & (mu[:, 2] < obj.cube.size))
+    boxes = footprints(p, view)
+    near_plant = keep & overlapping(boxes, union_box(boxes[keep & obj.plant]))
+    img, _ = render_values(p, plant, view, keep=torch.from_numpy(near_plant))
     if obj.cube is not None:
         sil, depth = cube_depth(obj.cube, view)
         if sil.any():
@@ -90,8 +96,10 @@ def object_prior(obj: ObjectModel, view) -> tuple[np.ndarray, np.ndarray]:
             v = np.clip(np.floor(uv[:, 1]).astype(int), 0, view.height - 1)
             inside = (uv[:, 0] >= 0) & (uv[:, 0] < view.width) & (uv[:, 1] >= 0) & (uv[:, 1] < view.height)
             reference = np.where(inside & sil[v, u], depth[v, u], depth[sil].min())  # beside it: its nearest point
-            front = keep.numpy() & (z < reference - 0.5)  # Gaussians in front of the cube
-            _, cover = render_values(p, torch.ones(n, 3), view, keep=torch.from_numpy(front))
+            ys, xs = np.nonzero(sil)
+            front = keep & (z < reference - 0.5) & overlapping(boxes, np.array([xs.min(), ys.min(), xs.max() + 1,
+                                                                                 ys.max() + 1]))
+            _, cover = render_values(p, torch.ones(n, 3), view, keep=torch.from_numpy(front))  # Gaussians before it
             cube = (sil * (1.0 - cover)).astype(np.float32)
     return img[..., 0].astype(np.float32), cube
 

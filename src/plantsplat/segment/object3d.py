@@ -37,6 +37,7 @@ from plantsplat.cube import CubeSpec, in_cube_box
 from plantsplat.log import get_logger
 from plantsplat.poses.checks import orbit_centre
 from plantsplat.raster import rasterize
+from plantsplat.raster.cpu_projection import project_cpu
 from plantsplat.raster.projection import quat_scale_to_covar
 from plantsplat.segment.decide import DecideConfig, decide_plant
 from plantsplat.train.model import sh_to_rgb
@@ -116,6 +117,40 @@ def render_values(params: dict, values: torch.Tensor, view, scale: float = 1.0, 
         out = rasterize(mu, q, torch.exp(s), torch.sigmoid(o).reshape(-1), values,
                         torch.tensor(view.viewmat, dtype=torch.float32), _scaled_K(view, scale), w, h, backend="cpu")
     return out.color.numpy(), out.alpha.reshape(h, w).numpy()
+
+
+FOOTPRINT_MARGIN_PX = 2
+"""Pixels each Gaussian's footprint (:func:`footprints`) is grown by, a margin for the rounding of its box."""
+
+
+def footprints(params: dict, view) -> np.ndarray:
+    """Each Gaussian's footprint in a view: the pixel box ``[x0, y0, x1, y1)`` (grown by :data:`FOOTPRINT_MARGIN_PX`)
+    outside which it is fainter than the rasterizer draws (alpha < 1/255); empty (``x1 <= x0``) for a Gaussian not
+    drawn in the view. ``[N, 4]`` int64"""
+    with torch.no_grad():  # the rasterizer's own projection (numba)
+        m2d, _, _, radii = project_cpu(
+            params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]).reshape(-1),
+            torch.tensor(view.viewmat, dtype=torch.float32), _scaled_K(view, 1.0), view.width, view.height)
+    m, r = m2d.double().numpy(), radii.numpy().astype(np.int64)
+    lo = np.floor(m - r - FOOTPRINT_MARGIN_PX).astype(np.int64)
+    hi = np.ceil(m + r + FOOTPRINT_MARGIN_PX).astype(np.int64) + 1
+    box = np.concatenate([lo, hi], axis=1)
+    box[(r <= 0).all(axis=1)] = 0  # not drawn: an empty box
+    return box
+
+
+def union_box(boxes: np.ndarray) -> np.ndarray:
+    """The box ``[x0, y0, x1, y1)`` around the non-empty ``boxes`` ``[N, 4]`` (empty when none is)."""
+    full = boxes[(boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])]
+    if not len(full):
+        return np.zeros(4, np.int64)
+    return np.concatenate([full[:, :2].min(axis=0), full[:, 2:].max(axis=0)])
+
+
+def overlapping(boxes: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """Which ``boxes`` ``[N, 4]`` share a pixel with ``box``. ``[N]`` bool"""
+    return ((boxes[:, 0] < box[2]) & (boxes[:, 2] > box[0]) & (boxes[:, 1] < box[3]) & (boxes[:, 3] > box[1])
+            & (boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1]))
 
 
 def horizontal_spread(params: dict) -> np.ndarray:
