@@ -80,7 +80,8 @@ def object_prior(obj: ObjectModel, view) -> tuple[np.ndarray, np.ndarray]:
     # nothing stands between the camera and the object (the filmer walks there): Gaussians nearer than the object's
     # region are floaters of the quick model, which can hang in front of one camera and veil the whole frame
     axis_depth = float(view.viewmat[2, :3] @ obj.axis + view.viewmat[2, 3])
-    keep = camera_points(mu, view)[1] > axis_depth - NEAR_REACH * obj.info["reach"]
+    uv, z = camera_points(mu, view)
+    keep = z > axis_depth - NEAR_REACH * obj.info["reach"]
     cube = np.zeros((view.height, view.width), np.float32)
     if obj.cube is not None:  # Gaussians of the cube give way to the exact cube
         h = obj.cube.size / 2
@@ -91,7 +92,6 @@ def object_prior(obj: ObjectModel, view) -> tuple[np.ndarray, np.ndarray]:
     if obj.cube is not None:
         sil, depth = cube_depth(obj.cube, view)
         if sil.any():
-            uv, z = camera_points(mu, view)
             u = np.clip(np.floor(uv[:, 0]).astype(int), 0, view.width - 1)
             v = np.clip(np.floor(uv[:, 1]).astype(int), 0, view.height - 1)
             inside = (uv[:, 0] >= 0) & (uv[:, 0] < view.width) & (uv[:, 1] >= 0) & (uv[:, 1] < view.height)
