@@ -145,6 +145,27 @@ def test_soil_hidden_leaves_the_crown_or_filled_to_the_rim():
     assert full is not None and abs(full.soil_z - 11.75) <= 0.5
 
 
+def test_a_soil_the_quick_model_smears_in_depth_is_the_sfm_points_layer():
+    """Issue 40. A dark soil in a black pot: the quick model draws it at every depth down to the pot's bottom, so no
+    slab covers the inside and the soil counts as not seen, and those Gaussians would be plant; structure from motion
+    puts the soil's texture in one layer, which then is the soil, and what hangs below it is pot."""
+    rng = np.random.default_rng(7)
+    centre = np.array([25.0, 10.0])
+    pot, plant = _without_soil(pot_points(rng, soil=9.5), 9.5), plant_points(rng)
+    rs, a = 6.5 * np.sqrt(rng.uniform(0, 1, 300)), rng.uniform(0, 2 * np.pi, 300)
+    smear = np.stack([centre[0] + rs * np.cos(a), centre[1] + rs * np.sin(a), rng.uniform(1.0, 9.4, 300)], 1)
+    pts = np.concatenate([pot, plant, smear])
+    kind = np.repeat(np.arange(3), [len(pot), len(plant), len(smear)])
+    rs, a = 6.5 * np.sqrt(rng.uniform(0, 1, 200)), rng.uniform(0, 2 * np.pi, 200)
+    soil = np.stack([centre[0] + rs * np.cos(a), centre[1] + rs * np.sin(a), rng.normal(9.5, 0.05, 200)], 1)
+    sfm_rest = np.concatenate([pot[::4], plant[::4]])
+    without = object_model(gaussians(pts), orbit_views(), CubeSpec(), sfm_rest)
+    assert without.info["pot"]["soil_sfm_points"] == 0 and without.plant[kind == 2].mean() > 0.5
+    obj = object_model(gaussians(pts), orbit_views(), CubeSpec(), np.concatenate([sfm_rest, soil]))
+    assert obj.info["pot"]["soil_z_cm"] == pytest.approx(9.5, abs=0.1) and obj.info["pot"]["soil_sfm_points"] > 100
+    assert obj.plant[kind == 2].mean() < 0.05 and obj.plant[kind == 1].mean() > 0.95
+
+
 def test_soil_drawn_by_a_few_wide_gaussians_is_found_by_their_footprints():
     """Issue 41. A quick model draws an even soil with a few wide, flat Gaussians: their centres alone cover too little
     of the disc inside the rim, their footprints (one standard deviation) cover it."""

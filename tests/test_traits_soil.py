@@ -1,4 +1,4 @@
-"""The soil in a pot from the SfM points (:mod:`plantsplat.traits.soil`), and the traits stage measuring from it."""
+"""The soil in a pot from the SfM points (:mod:`plantsplat.segment.soil`), and the traits stage measuring from it."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import pytest
 
 from plantsplat.ply import write_point_cloud
 from plantsplat.segment.object3d import POT_INSIDE_SHARE, POT_SLAB_CM, SOIL_DEPTH_CM
+from plantsplat.segment.soil import soil_layer
 from plantsplat.traits.checks import workspace_soil
-from plantsplat.traits.soil import soil_layer
 from plantsplat.workspace import Workspace
 
 CENTRE = np.array([20.0, 5.0])

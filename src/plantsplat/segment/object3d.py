@@ -26,7 +26,7 @@ Usage:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -40,6 +40,7 @@ from plantsplat.raster import rasterize
 from plantsplat.raster.cpu_projection import project_cpu
 from plantsplat.raster.projection import quat_scale_to_covar
 from plantsplat.segment.decide import DecideConfig, decide_plant
+from plantsplat.segment.soil import soil_layer
 from plantsplat.train.model import sh_to_rgb
 
 log = get_logger(__name__)
@@ -184,6 +185,9 @@ class Pot:
     thick, and the soil's surface lies within it."""
     wall: float = 1.5
     """How far inside the outer radius the pot's wall and rim reach (cm); above the soil, inside that, is plant."""
+    soil_points: int = 0
+    """How many SfM points lie in the soil's layer when :attr:`soil_z` is theirs (:func:`with_sfm_soil`); 0 when it is
+    the quick model's."""
 
     @property
     def soil_seen(self) -> bool:
@@ -205,6 +209,7 @@ class Pot:
     def summary(self) -> dict:
         return {"centre_cm": np.round(self.centre, 2).tolist(), "rim_z_cm": round(self.rim_z, 2),
                 "soil_z_cm": round(self.soil_z, 2), "soil_bottom_z_cm": round(self.soil_bottom, 2),
+                "soil_sfm_points": self.soil_points,
                 "rim_radius_cm": round(float(self.radii[-1]), 2), "base_radius_cm": round(float(self.radii[0]), 2)}
 
 
@@ -297,6 +302,22 @@ def find_pot(points: np.ndarray, axis_xy: np.ndarray, slab: float = POT_SLAB_CM,
     top, bottom = soil_band_in_pot(near, centre, r_rim, z_rim, slab, spread=None if spread is None else spread[close])
     return Pot(centre=np.asarray(centre), rim_z=float(z_rim), soil_z=top, heights=heights,
                radii=np.maximum.accumulate(radii), soil_bottom=bottom)
+
+
+def with_sfm_soil(pot: Pot, sfm_points: np.ndarray) -> Pot:
+    """``pot`` with its soil at the layer of SfM points inside it (:func:`plantsplat.segment.soil.soil_layer`), where
+    there is one; else ``pot`` as found in the quick model.
+
+    Structure from motion puts textured soil at the depth the frames agree on; the quick model, fitted at a third of
+    the frames' resolution, can draw it as a layer a centimetre or two thick, or at every depth down to the pot's
+    bottom (a dark soil in a black pot), where its slabs cover the inside nowhere and the soil counts as not seen."""
+    if not len(sfm_points):
+        return pot
+    layer = soil_layer(sfm_points, pot.centre, POT_INSIDE_SHARE * float(pot.radii[-1]), pot.rim_z, slab=POT_SLAB_CM,
+                       depth=SOIL_DEPTH_CM)
+    if layer is None:
+        return pot
+    return replace(pot, soil_z=layer.z, soil_bottom=layer.z, soil_points=layer.points)
 
 
 def soil_band_in_pot(points: np.ndarray, centre: np.ndarray, r_rim: float, z_rim: float, slab: float,
@@ -492,6 +513,7 @@ def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: n
         solid = torch.sigmoid(params["opacities"]).numpy().reshape(-1) > opaque
         pot = find_pot(mu[solid], centre[:2], seed=seed, spread=horizontal_spread(params)[solid])
         if pot is not None:
+            pot = with_sfm_soil(pot, sfm_points)
             in_pot = pot.contains(mu, pot_margin_cm)
             region &= ~in_pot
             part[in_pot] = PART_NAMES.index("pot")

@@ -38,8 +38,8 @@ from plantsplat.io import read_json
 from plantsplat.log import get_logger
 from plantsplat.ply import read_point_cloud
 from plantsplat.segment.object3d import POT_INSIDE_SHARE, POT_SLAB_CM, SOIL_DEPTH_CM, find_pot, orbit_axis
+from plantsplat.segment.soil import soil_layer
 from plantsplat.train.data import load_scene
-from plantsplat.traits.soil import soil_layer
 
 log = get_logger(__name__)
 
@@ -103,7 +103,7 @@ def workspace_soil(ws, calibrated: bool) -> tuple[float | None, str, tuple | Non
 
     The pot is the segment stage's (found as rings in its quick 3D model), or without that (imported masks) the one
     found among the poses stage's SfM points. In it, the soil is the layer of SfM points
-    (:func:`plantsplat.traits.soil.soil_layer`); where SfM saw none, the band of slabs the quick model covers the
+    (:func:`plantsplat.segment.soil.soil_layer`); where SfM saw none, the band of slabs the quick model covers the
     pot's inside with (taken at its middle), and where that did not see it either, the rim bounds it.
     """
     if not calibrated:
