@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from plantsplat.traitdefs import pca_widths
-from plantsplat.traits.widths import anisotropy, axis_turn_deg, even_sample, width_bounds
+from plantsplat.traits.widths import anisotropy, axis_turn_deg, even_sample, footprint_range, width_bounds
 
 
 def _arm(rng, angle_deg, length, n):
@@ -71,3 +71,21 @@ def test_bounds_widen_with_the_scale_error_and_are_repeatable():
     (lo_s, hi_s), _ = width_bounds(pts, turn, scale_se=0.01)
     assert lo_s == pytest.approx(lo * 0.98) and hi_s == pytest.approx(hi * 1.02)
     assert width_bounds(pts, 0.0, None)[0] == pytest.approx((pca_widths(pts)[0],) * 2)
+
+
+def test_bounds_span_the_gaussians_footprint_from_one_to_three_sigma():
+    """Issue 40. Sampled at 2 standard deviations, the outermost Gaussians of a crown stop short of its outline, which
+    lies within their footprint: the bounds from 1 to 3 standard deviations hold it, the 2-sigma samples alone do
+    not."""
+    rng = np.random.default_rng(3)
+    centres = _arm(rng, 0.0, 30.0, 4000)  # an elongated crown's Gaussians, 30 cm long
+    sigma = 0.25  # cm, round Gaussians
+    ends = np.concatenate([centres + s * 2 * sigma * np.eye(3)[j] for j in range(3) for s in (1, -1)])
+    points, owner = np.concatenate([centres, ends]), np.tile(centres, (7, 1))
+    true_width = np.ptp(centres[:, 0]) + 2 * 2.5 * sigma  # the outline at 2.5 sigma, between the two
+    inner, outer = footprint_range(points, owner, extent_sigma=2.0)
+    assert np.allclose(inner[len(centres):] - owner[len(centres):], (points - owner)[len(centres):] / 2)
+    (lo, hi), _ = width_bounds(points, 0.0, None)
+    assert hi < true_width  # the 2-sigma samples alone: both ends short of the outline
+    (lo, hi), _ = width_bounds(points, 0.0, None, inner=inner, outer=outer)
+    assert lo < true_width < hi and hi - lo == pytest.approx(2 * 2 * sigma, rel=0.05)

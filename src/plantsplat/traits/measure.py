@@ -90,6 +90,17 @@ def _gaussian_of(centre_mask, n: int) -> np.ndarray:
     return np.arange(n)
 
 
+def _sample_centres(pts: np.ndarray, is_centre: np.ndarray, gaussian: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """For each point of ``mask``, the centre of the Gaussian it was sampled from (itself where that centre was
+    filtered out). ``[M, 3]``"""
+    centre = np.full((int(gaussian.max(initial=-1)) + 1, 3), np.nan)
+    centre[gaussian[is_centre]] = pts[is_centre]
+    out = centre[gaussian[mask]]
+    missing = np.isnan(out[:, 0])
+    out[missing] = pts[mask][missing]
+    return out
+
+
 def _cluster_and_find_cube(pts, is_centre, centre_mask, s: TraitsConfig, calibrated: bool, size: float,
                            notes: list[str]):
     """DBSCAN clusters and the cube's cluster among them (clustered again tighter when the cube touches
@@ -392,6 +403,7 @@ def measure_traits(
                           "excluded": sel.excluded[:LISTED_EXCLUDED], "plant_points": int(plant_mask.sum())})
     P = pts_cm[plant_mask]  # [M, 3]
     C = None if cols is None else cols[plant_mask]
+    centres = _sample_centres(pts_cm, is_centre, gaussian, plant_mask) if centre_mask is not None else None
     if len(P) < SETTINGS.min_plant_points:
         return failed_result(f"the plant has only {len(P)} points: the reconstruction is too sparse to measure",
                        s, scale=scale, cube=cube_json, clusters=clusters_info)
@@ -407,6 +419,7 @@ def measure_traits(
     return TraitResult(
         traits=traits, robust=robust, quality="warning" if reasons else "ok", reasons=reasons, scale=scale,
         cube=cube_json, clusters=clusters_info, settings=asdict(s), plant_points=P, plant_colors=C,
+        plant_centres=centres,
         cube_points=cube_pts, fruit_centres=fruit_centres, transform=T, timings=timings, notes=notes, soil_z=soil,
         base_spread=spread,
     )

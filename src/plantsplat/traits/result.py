@@ -28,6 +28,9 @@ class TraitResult:
     """[M, 3] the plant's points in the calibrated frame (cm, z up)."""
     plant_colors: np.ndarray | None = None
     """[M, 3] uint8 or None."""
+    plant_centres: np.ndarray | None = None
+    """[M, 3] the centre of the Gaussian each plant point was sampled from (calibrated frame); None when the cloud's
+    points are not the Gaussians' extent samples."""
     cube_points: np.ndarray | None = None
     """[K, 3] the cube's points in the calibrated frame."""
     fruit_centres: np.ndarray | None = None

@@ -36,7 +36,7 @@ from plantsplat.traits.figures import traits_figure
 from plantsplat.traits.height import height_bounds, soil_interval
 from plantsplat.traits.measure import measure_traits
 from plantsplat.traits.result import TraitResult
-from plantsplat.traits.widths import axis_turn_deg, width_bounds
+from plantsplat.traits.widths import axis_turn_deg, footprint_range, width_bounds
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
@@ -184,7 +184,9 @@ def _width_bounds(out: dict, res: TraitResult, scale_se: float | None) -> None:
     if P is None or len(P) < 3 or out.get("width1_cm") is None:
         return
     turn = axis_turn_deg(P, MeasureConfig().even_cell_cm)
-    (lo1, hi1), (lo2, hi2) = width_bounds(P, turn, scale_se)
+    k = res.settings.get("extent_sigma") or 0.0
+    inner, outer = footprint_range(P, res.plant_centres, k) if res.plant_centres is not None and k > 0 else (None, None)
+    (lo1, hi1), (lo2, hi2) = width_bounds(P, turn, scale_se, inner=inner, outer=outer)
     out["width_axis_turn_deg"] = round(turn, 1)
     out["width1_bounds_cm"] = [round(lo1, 3), round(hi1, 3)]
     out["width2_bounds_cm"] = [round(lo2, 3), round(hi2, 3)]

@@ -17,6 +17,14 @@ the axis by at most ``asin(|d| / |a|) / 2``, and by any angle once ``|d|`` reach
 bounds are the extents along every axis within that angle of the measured one, widened by two
 standard errors of the scale (as the height's, :mod:`plantsplat.traits.height`).
 
+A model's outline is not sharp either. The widths take each Gaussian's axis ends at 2 standard deviations
+(``extent_sigma``); the outline a Gaussian draws lies between about 1 (where an opaque one covers half of a
+pixel: 1.18) and 3 (where the rasterizer stops drawing it, alpha 1/255: 3.3) of them (:data:`FOOTPRINT_SIGMAS`).
+Given the plant drawn at both (``inner``, ``outer``), the low ends come from the first and the high ends from the
+second. On the five demo seeds of 2026-11-28 the crowns came out 0.2-2.7 % short of the truth along every direction
+(the leaf tips' last 2-2.5 mm, about one standard deviation of the outermost Gaussians), and the bounds without it
+held 5 of the 10 true widths, with it 9.
+
 Example:
     >>> rng = np.random.default_rng(0)
     >>> long = rng.uniform([-20, -5, 0], [20, 5, 1], (4000, 3))  # a crown four times longer than wide
@@ -33,6 +41,10 @@ from __future__ import annotations
 import numpy as np
 
 from plantsplat.traitdefs import pca_axes
+
+FOOTPRINT_SIGMAS = (1.0, 3.0)
+"""Where the outline a Gaussian draws can lie, in its standard deviations: from about where an opaque one covers half
+of a pixel to where the rasterizer stops drawing it (see the module docstring)."""
 
 
 def anisotropy(points: np.ndarray) -> np.ndarray:
@@ -62,21 +74,34 @@ def axis_turn_deg(points: np.ndarray, cell_cm: float) -> float:
     return float(np.degrees(0.5 * np.arcsin(d / gap)))
 
 
-def width_bounds(points: np.ndarray, turn_deg: float, scale_se: float | None, step_deg: float = 1.0
+def width_bounds(points: np.ndarray, turn_deg: float, scale_se: float | None, step_deg: float = 1.0,
+                 inner: np.ndarray | None = None, outer: np.ndarray | None = None
                  ) -> tuple[tuple[float, float], tuple[float, float]]:
-    """``((w1_low, w1_high), (w2_low, w2_high))`` (cm): the extents of ``points`` ``[N, 3]`` along the PCA axes turned
+    """``((w1_low, w1_high), (w2_low, w2_high))`` (cm): the extents along the PCA axes of ``points`` ``[N, 3]`` turned
     by up to ``turn_deg`` either way (every ``step_deg``), each end widened by two standard errors (``scale_se``, a
-    fraction) of the scale."""
+    fraction) of the scale. The low ends are taken on ``inner`` and the high ends on ``outer`` (``[N, 3]`` each: the
+    same surface drawn at its least and most extent; default ``points``)."""
     centre, axes = pca_axes(points)
-    xy = points[:, :2] - centre
     base = np.arctan2(axes[0, 1], axes[0, 0])
     half = np.append(np.arange(0.0, turn_deg, step_deg), turn_deg)  # 0 (the widths themselves) to the full turn
-    turns = np.radians(np.concatenate([-half[:0:-1], half]))
-    ext = np.empty((len(turns), 2))
-    for i, t in enumerate(base + turns):
-        u = np.array([np.cos(t), np.sin(t)])
-        p, q = xy @ u, xy @ np.array([-u[1], u[0]])
-        ext[i] = p.max() - p.min(), q.max() - q.min()
+    turns = base + np.radians(np.concatenate([-half[:0:-1], half]))
+    low = _extents(points if inner is None else inner, turns).min(axis=0)
+    high = _extents(points if outer is None else outer, turns).max(axis=0)
     k = 2.0 * (scale_se or 0.0)
-    return ((float(ext[:, 0].min() * (1 - k)), float(ext[:, 0].max() * (1 + k))),
-            (float(ext[:, 1].min() * (1 - k)), float(ext[:, 1].max() * (1 + k))))
+    return ((float(low[0] * (1 - k)), float(high[0] * (1 + k))), (float(low[1] * (1 - k)), float(high[1] * (1 + k))))
+
+
+def _extents(points: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """Extents of the ground-projected ``points`` ``[N, 3]`` along each direction of ``angles`` (radians) and across
+    it. ``[A, 2]``"""
+    u = np.stack([np.cos(angles), np.sin(angles)], axis=1)  # [A, 2]
+    along, across = points[:, :2] @ u.T, points[:, :2] @ np.stack([-u[:, 1], u[:, 0]], axis=1).T  # [N, A] each
+    return np.stack([along.max(0) - along.min(0), across.max(0) - across.min(0)], axis=1)
+
+
+def footprint_range(points: np.ndarray, centres: np.ndarray, extent_sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Extent samples ``points`` ``[N, 3]`` taken at ``extent_sigma`` standard deviations from their Gaussians'
+    ``centres`` ``[N, 3]``, moved to :data:`FOOTPRINT_SIGMAS`: ``(inner, outer)``, ``[N, 3]`` each."""
+    lo, hi = FOOTPRINT_SIGMAS
+    d = points - centres
+    return centres + (lo / extent_sigma) * d, centres + (hi / extent_sigma) * d
