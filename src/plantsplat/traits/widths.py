@@ -93,10 +93,15 @@ def width_bounds(points: np.ndarray, turn_deg: float, scale_se: float | None, st
 
 def _extents(points: np.ndarray, angles: np.ndarray) -> np.ndarray:
     """Extents of the ground-projected ``points`` ``[N, 3]`` along each direction of ``angles`` (radians) and across
-    it. ``[A, 2]``"""
-    u = np.stack([np.cos(angles), np.sin(angles)], axis=1)  # [A, 2]
-    along, across = points[:, :2] @ u.T, points[:, :2] @ np.stack([-u[:, 1], u[:, 0]], axis=1).T  # [N, A] each
-    return np.stack([along.max(0) - along.min(0), across.max(0) - across.min(0)], axis=1)
+    it. ``[A, 2]`` (one direction at a time: a model's extent samples are hundreds of thousands of points, and a round
+    crown's bounds look along 181 directions)."""
+    xy = points[:, :2]
+    ext = np.empty((len(angles), 2))
+    for i, t in enumerate(angles):
+        u = np.array([np.cos(t), np.sin(t)])
+        p, q = xy @ u, xy @ np.array([-u[1], u[0]])
+        ext[i] = p.max() - p.min(), q.max() - q.min()
+    return ext
 
 
 def footprint_range(points: np.ndarray, centres: np.ndarray, extent_sigma: float) -> tuple[np.ndarray, np.ndarray]:
