@@ -10,8 +10,9 @@ to their video neighbours no longer fit the model.
 :func:`pair_errors` measures every verified pair under the model: the median Sampson distance (in
 pixels) of the pair's inlier matches for the relative pose that the model gives the two cameras.
 Right pairs of a right model sit near the keypoints' noise (well under a pixel to 1-2 px); a pair
-that the model contradicts sits at tens of pixels. :func:`contradicted` lists those pairs, which the
-poses stage removes from the database before mapping again.
+that the model contradicts sits at tens of pixels. :func:`contradicted` lists those pairs; the poses
+stage compares two mappers' models by them (:func:`contradiction`, and McNemar's test in
+:mod:`plantsplat.poses.estimate`).
 
 Example:
     >>> import numpy as np
@@ -94,15 +95,3 @@ def contradiction(errors: dict[tuple[str, str], tuple[int, float]], max_px: floa
     total = sum(n for n, _ in errors.values())
     bad = sum(n for n, e in errors.values() if e > max_px)
     return bad / total if total else 0.0
-
-
-def remove_pairs(db: Path, pairs: list[tuple[str, str]]) -> int:
-    """Delete the two-view geometries (and so the verified matches) of ``pairs`` from ``db``; returns how many."""
-    n = 0
-    with pycolmap.Database.open(str(db)) as d:
-        ids = {im.name: im.image_id for im in d.read_all_images()}
-        for a, b in pairs:
-            if a in ids and b in ids and d.exists_two_view_geometry(ids[a], ids[b]):
-                d.delete_two_view_geometry(ids[a], ids[b])
-                n += 1
-    return n
