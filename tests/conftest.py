@@ -22,6 +22,18 @@ import pytest
 os.environ["PLANTSPLAT_NO_PROGRESS"] = "1"
 
 
+@pytest.fixture(autouse=True)
+def no_doctest_result_in_builtins():
+    """Each test starts without the ``_`` a doctest's last expression leaves in ``builtins`` (doctest runs examples as
+    an interactive session does). tyro hashes every builtin when the CLI first parses its options, and a tuple of
+    lists there (``widths.py``'s example prints one) failed it in whichever CLI test came after that doctest."""
+    import builtins
+
+    if hasattr(builtins, "_"):
+        del builtins._
+    yield
+
+
 def pytest_collection_modifyitems(config, items):
     """Skip ``cuda`` tests cleanly on machines without CUDA."""
     import torch
