@@ -26,10 +26,11 @@ os.environ["PLANTSPLAT_NO_PROGRESS"] = "1"
 def no_doctest_result_in_builtins():
     """Each test starts without the ``_`` a doctest's last expression leaves in ``builtins`` (doctest runs examples as
     an interactive session does). tyro hashes every builtin when the CLI first parses its options, and a tuple of
-    lists there (``widths.py``'s example prints one) failed it in whichever CLI test came after that doctest."""
+    lists there (``widths.py``'s example prints one) failed it in whichever CLI test came after that doctest. A
+    callable ``_`` (gettext's, installed by a library) is left alone."""
     import builtins
 
-    if hasattr(builtins, "_"):
+    if hasattr(builtins, "_") and not callable(builtins._):
         del builtins._
     yield
 
