@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 
 from plantsplat.ply import write_point_cloud
-from plantsplat.segment.object3d import POT_INSIDE_SHARE, POT_SLAB_CM, SOIL_DEPTH_CM
-from plantsplat.segment.soil import soil_layer
+from plantsplat.segment.object3d import pot_soil_layer
 from plantsplat.traits.checks import workspace_soil
 from plantsplat.workspace import Workspace
 
@@ -19,7 +18,7 @@ RIM_R, RIM_Z = 7.0, 14.0
 
 def _layer(points):
     """The soil layer of SfM ``points`` in this pot, looked for as the traits stage looks for it."""
-    return soil_layer(points, CENTRE, POT_INSIDE_SHARE * RIM_R, RIM_Z, slab=POT_SLAB_CM, depth=SOIL_DEPTH_CM)
+    return pot_soil_layer(points, CENTRE, RIM_R, RIM_Z)
 
 
 def _disc(rng, n, z, sigma=0.06, radius=0.75 * RIM_R):

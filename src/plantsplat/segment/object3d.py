@@ -304,8 +304,16 @@ def find_pot(points: np.ndarray, axis_xy: np.ndarray, slab: float = POT_SLAB_CM,
                radii=np.maximum.accumulate(radii), soil_bottom=bottom)
 
 
+def pot_soil_layer(sfm_points: np.ndarray, centre, rim_radius: float, rim_z: float):
+    """The layer of SfM points on the soil of a pot (rim of ``rim_radius`` at ``rim_z`` around ``centre``), looked for in
+    its inner disc down to :data:`SOIL_DEPTH_CM` below the rim in :data:`POT_SLAB_CM` slabs
+    (:func:`plantsplat.segment.soil.soil_layer`); None where there is none."""
+    return soil_layer(sfm_points, np.asarray(centre, float), POT_INSIDE_SHARE * float(rim_radius), float(rim_z),
+                      slab=POT_SLAB_CM, depth=SOIL_DEPTH_CM)
+
+
 def with_sfm_soil(pot: Pot, sfm_points: np.ndarray) -> Pot:
-    """``pot`` with its soil at the layer of SfM points inside it (:func:`plantsplat.segment.soil.soil_layer`), where
+    """``pot`` with its soil at the layer of SfM points inside it (:func:`pot_soil_layer`), where
     there is one; else ``pot`` as found in the quick model.
 
     Structure from motion puts textured soil at the depth the frames agree on; the quick model, fitted at a third of
@@ -313,8 +321,7 @@ def with_sfm_soil(pot: Pot, sfm_points: np.ndarray) -> Pot:
     bottom (a dark soil in a black pot), where its slabs cover the inside nowhere and the soil counts as not seen."""
     if not len(sfm_points):
         return pot
-    layer = soil_layer(sfm_points, pot.centre, POT_INSIDE_SHARE * float(pot.radii[-1]), pot.rim_z, slab=POT_SLAB_CM,
-                       depth=SOIL_DEPTH_CM)
+    layer = pot_soil_layer(sfm_points, pot.centre, pot.radii[-1], pot.rim_z)
     if layer is None:
         return pot
     return replace(pot, soil_z=layer.z, soil_bottom=layer.z, soil_points=layer.points)

@@ -37,8 +37,7 @@ from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_json
 from plantsplat.log import get_logger
 from plantsplat.ply import read_point_cloud
-from plantsplat.segment.object3d import POT_INSIDE_SHARE, POT_SLAB_CM, SOIL_DEPTH_CM, find_pot, orbit_axis
-from plantsplat.segment.soil import soil_layer
+from plantsplat.segment.object3d import POT_INSIDE_SHARE, find_pot, orbit_axis, pot_soil_layer
 from plantsplat.train.data import load_scene
 
 log = get_logger(__name__)
@@ -103,7 +102,7 @@ def workspace_soil(ws, calibrated: bool) -> tuple[float | None, str, tuple | Non
 
     The pot is the segment stage's (found as rings in its quick 3D model), or without that (imported masks) the one
     found among the poses stage's SfM points. In it, the soil is the layer of SfM points
-    (:func:`plantsplat.segment.soil.soil_layer`); where SfM saw none, the band of slabs the quick model covers the
+    (:func:`plantsplat.segment.object3d.pot_soil_layer`); where SfM saw none, the band of slabs the quick model covers the
     pot's inside with (taken at its middle), and where that did not see it either, the rim bounds it.
     """
     if not calibrated:
@@ -114,8 +113,7 @@ def workspace_soil(ws, calibrated: bool) -> tuple[float | None, str, tuple | Non
         return None, "no pot found: the height is the plant's extent (a plant in the ground)", None, 0.0
     layer = None
     if sfm is not None and pot["centre"] is not None and pot["radius"] is not None and np.isfinite(pot["rim"]):
-        layer = soil_layer(sfm, np.asarray(pot["centre"], float), POT_INSIDE_SHARE * float(pot["radius"]),
-                           float(pot["rim"]), slab=POT_SLAB_CM, depth=SOIL_DEPTH_CM)
+        layer = pot_soil_layer(sfm, pot["centre"], pot["radius"], pot["rim"])
     if layer is not None:
         return layer.z, f"{pot['source']}; soil: the layer of {layer.points} SfM points in it", None, 0.0
     return _soil_of(pot["soil"], pot["bottom"], pot["rim"], pot["centre"], pot["radius"], pot["source"])
