@@ -42,8 +42,8 @@ class PosesConfig:
     """The camera model's lens distortion: ``auto`` fits it only where the frames support it (BIC,
     :mod:`plantsplat.poses.distortion`), else sets it to zero; ``fit`` always fits it, as COLMAP does."""
     ba_loss_px: float = 1.0
-    """Scale (px) of the Cauchy loss on reprojection errors in the bundle adjustments after mapping (the distortion
-    test, the cube's): errors well above it weigh less."""
+    """Scale (px) of the Cauchy loss on reprojection errors in the bundle adjustments after mapping (the points
+    triangulated again, the distortion test, the cube's): errors well above it weigh less."""
     max_features: int = 2048
     """SIFT features per frame."""
     sift_first_octave: int = -1
@@ -132,4 +132,4 @@ class PosesConfig:
         """The options of :mod:`plantsplat.poses.sfm` (COLMAP's feature extraction, matching and mappers)."""
         return SfmConfig(camera_model=self.camera_model, max_features=self.max_features,
                           first_octave=self.sift_first_octave, num_threads=self.num_threads, seed=self.seed,
-                          verbose=self.colmap_log)
+                          verbose=self.colmap_log, ba_loss_px=self.ba_loss_px)

@@ -4,8 +4,9 @@ runs them over a workspace).
 1. Registration needs neither masks nor the cube (:func:`register`): SIFT on whole frames, pairs chosen for orbit
    videos (:mod:`plantsplat.poses.pairs`: video neighbours and retrieval with a vocabulary learned from the
    capture; every pair when that is affordable), COLMAP's incremental mapper; frames it leaves out are matched
-   again against the registered frames near them and mapping continues from the model. A user's model is
-   imported instead by :func:`import_model`.
+   again against the registered frames near them and mapping continues from the model. The kept model's points
+   are then triangulated again from every verified match, with its cameras as they are at the end, and
+   bundle-adjusted. A user's model is imported instead by :func:`import_model`.
 2. Frames whose camera leaves the path of its video neighbours are left out (:func:`leave_out_off_path`,
    :func:`plantsplat.poses.checks.off_path`).
 3. The cube gives scale, gravity and origin only (:func:`calibrate_model`,
@@ -49,6 +50,7 @@ from plantsplat.poses.sfm import (
     match_exhaustive,
     match_pairs,
     merge_models,
+    retriangulate,
     start_global_mapping,
     write_model,
 )
@@ -212,7 +214,21 @@ def register(ws: Workspace, names: list[str], times: list[float], cfg: PosesConf
         raise PlantsplatError(
             f"{ws.images_dir}: COLMAP could not reconstruct any model from {len(names)} frames; the frames may be "
             "too blurry, too few or too far apart (keep 6-12 degrees between neighbours)", exit_code=EXIT_POSES_FAILED)
+    t0 = time.perf_counter()
+    rec = _triangulated_again(rec, db, ws, cfg)
+    timings["retriangulate_s"] = time.perf_counter() - t0
     return rec
+
+
+def _triangulated_again(rec, db: Path, ws: Workspace, cfg: PosesConfig):
+    """``rec``'s cameras with every verified match triangulated again, then bundle-adjusted (points, cameras, focal
+    length and distortion).
+
+    Incremental mapping makes each point from the cameras as they were when the point was made, and the pieces
+    of a merge or of continued mapping were made apart; made again from the final cameras and every match, the
+    points hold each camera by all it sees (docs/stages/poses.md has the measured effect)."""
+    poses = {im.name: im.cam_from_world() for im in rec.images.values() if im.has_pose}
+    return retriangulate(rec, poses, db, ws.images_dir, ws.root / WORK_DIR / "retriangulated", cfg.sfm_options())
 
 
 def import_model(ws: Workspace, names: list[str], cfg: PosesConfig, report: dict):
