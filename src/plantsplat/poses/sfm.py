@@ -426,8 +426,7 @@ def final_ba_options(refine_distortion: bool, num_threads: int, loss_scale_px: f
 def retriangulate(like, poses: dict, db: Path, image_dir: Path, work_dir: Path, opts: SfmConfig):
     """A model of the frames in ``poses`` (name -> cam_from_world) with the camera of ``like``: every match in
     ``db`` triangulated, then a bundle adjustment of poses, points and intrinsics with the Cauchy loss of
-    ``opts.ba_loss_px`` (:func:`final_ba_options`: with plain least squares, the worst camera of one foreign render
-    came out 0.17 degrees further off; docs/stages/poses.md)."""
+    ``opts.ba_loss_px``, as every adjustment after mapping (:func:`final_ba_options`)."""
     import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     with pycolmap.Database.open(str(db)) as d:
