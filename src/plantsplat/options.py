@@ -57,7 +57,7 @@ RULES: dict[str, list[tuple[str, Callable[[Any], bool], str]]] = {
                ("dup_threshold", at_least(0, 255), "a number from 0 to 255")],
     "poses": [("cube_size", positive, "a number above 0 (cm)"), ("marker_size", positive, "a number above 0 (cm)"),
               ("max_residual_px", positive, "a number above 0 (px)"), ("num_threads", at_least(1), "at least 1"),
-              ("ba_loss_px", positive, "a number above 0 (px)"), ("nearest_cameras", at_least(0), "0 or more"),
+              ("ba_loss_px", positive, "a number above 0 (px)"),
               ("max_off_path_block", share, "a number from 0 to 1"),
               ("mapper_switch_sigma", non_negative, "a number of at least 0")],
     "segment": [("scene_resolution", at_least(16), "at least 16 (px)"), ("scene_steps", at_least(1), "at least 1"),
