@@ -478,26 +478,3 @@ def _alive(pid: int) -> bool:
             return not any(line.startswith("State:") and "Z" in line.split()[1] for line in f)
     except FileNotFoundError:
         return False
-
-
-def test_nearest_camera_pairs_join_each_frame_to_its_neighbours_in_space():
-    """Each registered frame is paired with the k registered cameras nearest to it: on two rings, its neighbours on
-    its own ring and the cameras above or below it on the other; an unregistered frame is left alone."""
-    from plantsplat.poses.pairs import nearest_camera_pairs
-
-    cams = orbit(24)  # 12 per ring, 30 degrees apart: neighbours on a ring 23.3 cm apart, the rings 23 cm apart
-    names = sorted(cams)
-    rec = make_rec({n: c for n, c in cams.items() if n != names[5]})
-    pairs = nearest_camera_pairs(names, rec, 3)
-    assert all(names[5] not in p for p in pairs)
-    assert all(names.index(a) < names.index(b) for a, b in pairs) and len(set(pairs)) == len(pairs)
-    for n in names:
-        if n == names[5]:
-            continue
-        partners = {b if a == n else a for a, b in pairs if n in (a, b)}
-        i = names.index(n)
-        ring, j = divmod(i, 12)
-        same_ring = {names[ring * 12 + (j + d) % 12] for d in (-1, 1)} - {names[5]}
-        other = names[(1 - ring) * 12 + j]
-        assert same_ring <= partners and (other in partners or other == names[5]), (n, partners)
-    assert nearest_camera_pairs(names, rec, 0) == []

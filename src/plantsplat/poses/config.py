@@ -52,9 +52,6 @@ class PosesConfig:
     """Retrieval matching: each frame is matched with this many following frames of the video."""
     retrieval_neighbours: int = 20
     """Retrieval matching: each frame is matched with this many frames most alike in visual words."""
-    nearest_cameras: int = 10
-    """After mapping, each registered frame is also matched with this many registered cameras nearest to it where no
-    pair was matched, before the points are triangulated again (0: not)."""
     vocabulary_words: int = 1024
     """Retrieval matching: words of the visual vocabulary learned from the capture."""
     exhaustive_max_frames: int = 50

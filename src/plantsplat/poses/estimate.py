@@ -4,10 +4,9 @@ runs them over a workspace).
 1. Registration needs neither masks nor the cube (:func:`register`): SIFT on whole frames, pairs chosen for orbit
    videos (:mod:`plantsplat.poses.pairs`: video neighbours and retrieval with a vocabulary learned from the
    capture; every pair when that is affordable), COLMAP's incremental mapper; frames it leaves out are matched
-   again against the registered frames near them and mapping continues from the model. Each registered frame is
-   then matched with the registered cameras nearest to it that no pair joined yet, and the kept model's points are
-   triangulated again from every verified match, with its cameras as they are at the end, and bundle-adjusted. A
-   user's model is imported instead by :func:`import_model`.
+   again against the registered frames near them and mapping continues from the model. The kept model's points
+   are then triangulated again from every verified match, with its cameras as they are at the end, and
+   bundle-adjusted. A user's model is imported instead by :func:`import_model`.
 2. Frames whose camera leaves the path of its video neighbours are left out (:func:`leave_out_off_path`,
    :func:`plantsplat.poses.checks.off_path`).
 3. The cube gives scale, gravity and origin only (:func:`calibrate_model`,
@@ -40,14 +39,7 @@ from plantsplat.poses.consistency import contradicted, contradiction, pair_error
 from plantsplat.poses.imports import name_map, rename_images
 from plantsplat.poses.interop import c2w_opencv, read_colmap, read_transforms, registered_images
 from plantsplat.poses.localize import add_frames, localize_frames
-from plantsplat.poses.pairs import (
-    build_vocabulary,
-    nearest_camera_pairs,
-    not_matched,
-    pairs_for_missing,
-    retrieval_pairs,
-    video_pairs,
-)
+from plantsplat.poses.pairs import build_vocabulary, pairs_for_missing, retrieval_pairs, video_pairs
 from plantsplat.poses.sfm import (
     MAP_THREADS,
     colmap_logging,
@@ -222,13 +214,6 @@ def register(ws: Workspace, names: list[str], times: list[float], cfg: PosesConf
         raise PlantsplatError(
             f"{ws.images_dir}: COLMAP could not reconstruct any model from {len(names)} frames; the frames may be "
             "too blurry, too few or too far apart (keep 6-12 degrees between neighbours)", exit_code=EXIT_POSES_FAILED)
-    t0 = time.perf_counter()
-    new = not_matched(db, nearest_camera_pairs(names, rec, cfg.nearest_cameras))
-    report["pairs_nearest_cameras"] = len(new)
-    if new:
-        log.info("SfM: matching %d more pairs of cameras the model puts near each other", len(new))
-        match_pairs(db, work, new, cfg.sfm_options(), "nearest")
-    timings["match_nearest_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     rec = _triangulated_again(rec, db, ws, cfg)
     timings["retriangulate_s"] = time.perf_counter() - t0

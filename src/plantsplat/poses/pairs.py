@@ -100,28 +100,3 @@ def pairs_for_missing(names: list[str], rec, k: int, window: int = 3) -> list[tu
             if m != n:
                 pairs.add(tuple(sorted((n, m), key=order.get)))
     return sorted(pairs, key=lambda p: (order[p[0]], order[p[1]]))
-
-
-def nearest_camera_pairs(names: list[str], rec, k: int) -> list[tuple[str, str]]:
-    """Each frame registered in model ``rec`` with the ``k`` registered cameras nearest to it (camera centres), in
-    video order (``names``): the pairs the model says see the same scene, whether or not retrieval proposed them."""
-    reg = {im.name: np.asarray(im.projection_center()) for im in rec.images.values() if im.has_pose}
-    order = {n: i for i, n in enumerate(names)}
-    reg_names = [n for n in names if n in reg]
-    if len(reg_names) < 2 or k < 1:
-        return []
-    C = np.array([reg[n] for n in reg_names])  # [R, 3]
-    pairs = set()
-    for i, n in enumerate(reg_names):
-        d = np.linalg.norm(C - C[i], axis=1)
-        d[i] = np.inf
-        for j in np.argsort(d, kind="stable")[:k]:
-            pairs.add(tuple(sorted((n, reg_names[j]), key=order.get)))
-    return sorted(pairs, key=lambda p: (order[p[0]], order[p[1]]))
-
-
-def not_matched(db: Path, pairs: list[tuple[str, str]]) -> list[tuple[str, str]]:
-    """The ``pairs`` (image names) that ``db`` holds no matches for yet, in their order."""
-    with pycolmap.Database.open(str(db)) as d:
-        ids = {im.name: im.image_id for im in d.read_all_images()}
-        return [(a, b) for a, b in pairs if a in ids and b in ids and not d.exists_matches(ids[a], ids[b])]
