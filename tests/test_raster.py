@@ -567,7 +567,6 @@ def test_numba_sh_colours_match_torch_values_and_gradients(degree):
         sh_colors_cpu(4, means, campos, coeffs)
 
 
-@pytest.mark.slow
 def _differences(a, b) -> list[str]:
     """The arrays of two kernel_outputs.py files that differ, each with its largest difference and count."""
     out = []
@@ -578,6 +577,7 @@ def _differences(a, b) -> list[str]:
     return out
 
 
+@pytest.mark.slow
 def test_freshly_compiled_kernels_match_cached_ones_bit_for_bit(tmp_path):
     """The first run after an install compiles the numba kernels; later runs load them from numba's cache. Both
     must give the same images and gradients to the last bit, or the same capture gives other results on its
