@@ -39,6 +39,8 @@ CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV
 MAP_THREADS = 1
 """Threads of the mappers and bundle adjustments. With two, the incremental mapper gave one of two models of the same
 matches at random (about one run in six, 2026-11-26); with one it gives the same model every time, as fast."""
+RETRIANGULATED_BA_ITERATIONS = 100
+"""Iterations, at most, of the bundle adjustment after :func:`retriangulate`."""
 MATCH_THREADS = 1
 """Threads of SIFT matching and two-view verification. With two, COLMAP's CPU matcher returned different matches for
 one or two of 988 pairs in about one run in five (2026-11-27), enough to move the mapping; one thread gives the same
@@ -74,7 +76,6 @@ class SfmConfig:
     ransac_max_trials: int = 2000
     min_pose_inliers: int = 15
     min_pose_inlier_ratio: float = 0.1
-    retriangulated_ba_iterations: int = 100  # at most, in the adjustment of :func:`retriangulate`
 
 
 @contextlib.contextmanager
@@ -446,7 +447,7 @@ def retriangulate(like, poses: dict, db: Path, image_dir: Path, work_dir: Path, 
     o.random_seed = opts.seed
     o.triangulation.random_seed = opts.seed
     pycolmap.set_random_seed(opts.seed)
-    ba = final_ba_options(True, MAP_THREADS, opts.ba_loss_px, opts.retriangulated_ba_iterations)
+    ba = final_ba_options(True, MAP_THREADS, opts.ba_loss_px, RETRIANGULATED_BA_ITERATIONS)
     with colmap_logging(opts.verbose):
         rec = pycolmap.triangulate_points(rec, db, image_dir, work_dir, clear_points=True, options=o,
                                           refine_intrinsics=True)
