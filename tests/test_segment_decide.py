@@ -116,3 +116,27 @@ def test_too_little_evidence_keeps_the_candidates():
     cand = np.ones(50, bool)
     plant, facts = decide_plant(mu, np.full((50, 3), 0.5), np.ones(50), cand, np.zeros(50, bool), 45.0)
     assert plant.all() and "position" in facts["decided_by"]
+
+
+def test_a_piece_apart_that_no_sfm_point_holds_goes_and_one_that_a_point_holds_stays():
+    """Two equal pieces 5 cm beside the plant's leaves, of a colour neither the plant nor the room has (so colour
+    decides nothing): structure from motion found points on one of them (a leaf whose petiole the quick model lost),
+    none near the other (Gaussians a quick model hung in front of a blank wall)."""
+    rng = np.random.default_rng(5)
+    mu, rgb, weight, candidate, rest, truth = _scene(rng)
+    leaf = np.c_[rng.normal(17.0, 0.4, 30), rng.normal(0, 0.4, 30), rng.normal(25.0, 0.2, 30)]
+    floater = leaf * [-1.0, 1.0, 1.0]
+    mu = np.concatenate([mu, leaf, floater])
+    rgb = np.concatenate([rgb, np.clip(rng.normal([0.1, 0.2, 0.85], 0.02, (60, 3)), 0, 1)])
+    n = len(mu)
+    weight, candidate = np.ones(n), np.concatenate([candidate, np.ones(60, bool)])
+    rest = np.concatenate([rest, np.zeros(60, bool)])
+    textured = np.concatenate([np.flatnonzero(truth)[::3], [n - 60 + 3]])  # SfM points on the body and on the leaf
+    sfm_distance = cKDTree(mu[textured] + rng.normal(0, 0.05, (len(textured), 3))).query(mu)[0]
+    gap, _ = body_gaps(mu[candidate], DecideConfig().attach_reach * 45.0)
+    assert (gap[-60:] > 3).all()  # both apart from the body
+    plant, facts = decide_plant(mu, rgb, weight, candidate, rest, 45.0, sfm_distance)
+    assert plant[n - 60:n - 30].all() and not plant[n - 30:].any(), facts
+    assert plant[:len(truth)][truth].mean() > 0.99 and facts["unsupported"] >= 30
+    without, _ = decide_plant(mu, rgb, weight, candidate, rest, 45.0)
+    assert without[n - 60:].all()  # without SfM points nothing tells the two apart

@@ -16,6 +16,11 @@ the wrong depth, a few Gaussians beside the cube. Three more kinds of evidence h
   its prior falls with the square of the gap, measured against the body's size, so a leaf whose
   petiole the quick model lost or a fruit hanging over the pot's rim stays unless its colour is the
   room's, while a patch of wall above the plant or a clump by the cube, far from the body, goes;
+- **support**: structure from motion puts points on the plant's textured surfaces; how near the body's
+  Gaussians lie to them is learned per capture (:func:`support_reach`). A piece apart from the body none
+  of whose Gaussians is that near an SfM point is held by nothing the frames agree on (a few Gaussians
+  a quick model hangs in front of a blank wall): its prior is turned against it, so only a colour
+  that is clearly the plant's keeps it;
 - **neighbours**: a Gaussian takes the label of its neighbours in 3D unless their colours differ (a
   Potts term on the k-nearest-neighbour graph of the candidates, weighted as GrabCut weights
   neighbouring pixels), so a white flower on a green plant in a white room stays with its plant.
@@ -42,6 +47,9 @@ BODY_SIZE_PERCENTILE = 95
 """The plant body's size: this percentile of its points' distances from their median (stray points aside)."""
 MIN_COLOUR_SAMPLES = 50
 """The plant's colours are learned from its whole body where fewer of its Gaussians than this have an SfM point near."""
+SUPPORT_PERCENTILE = 95
+"""A piece apart from the body is held by an SfM point when one of its Gaussians lies as near one as this percentile of
+the body's Gaussians do."""
 
 
 @dataclass
@@ -139,9 +147,16 @@ def min_cut_labels(unary: np.ndarray, i: np.ndarray, j: np.ndarray, w: np.ndarra
 
 def body_gaps(mu: np.ndarray, link: float) -> tuple[np.ndarray, float]:
     """How far each of the points ``mu`` ``[N, 3]`` lies from the plant's body, through the piece it belongs to:
-    ``(gap [N], body size)``. Points within ``link`` of each other form a piece; the largest piece is the body
-    (gap 0); another piece's gap is its shortest distance to the body. The body's size is the 95th percentile of
-    its points' distances from their median."""
+    ``(gap [N], body size)`` (see :func:`pieces`)."""
+    gap, size, _ = pieces(mu, link)
+    return gap, size
+
+
+def pieces(mu: np.ndarray, link: float) -> tuple[np.ndarray, float, np.ndarray]:
+    """The pieces of the points ``mu`` ``[N, 3]`` and how far each lies from the plant's body: ``(gap [N], body size,
+    piece label [N])``. Points within ``link`` of each other form a piece; the largest piece is the body (gap 0);
+    another piece's gap is its shortest distance to the body. The body's size is the 95th percentile of its points'
+    distances from their median."""
     pairs = cKDTree(mu).query_pairs(link, output_type="ndarray")
     graph = csr_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(mu), len(mu)))
     _, label = connected_components(graph, directed=False)
@@ -152,7 +167,23 @@ def body_gaps(mu: np.ndarray, link: float) -> tuple[np.ndarray, float]:
     for piece in np.unique(label[~body]):
         m = label == piece
         gap[m] = d[m].min()
-    return gap, size
+    return gap, size, label
+
+
+def support_reach(sfm_distance: np.ndarray, gap: np.ndarray) -> float:
+    """How near an SfM point the body's Gaussians lie (the :data:`SUPPORT_PERCENTILE` percentile of their distances;
+    ``sfm_distance`` and ``gap`` ``[N]`` over the candidates)."""
+    return float(np.percentile(sfm_distance[gap == 0], SUPPORT_PERCENTILE))
+
+
+def unsupported(sfm_distance: np.ndarray, gap: np.ndarray, label: np.ndarray) -> np.ndarray:
+    """The candidates (``[N]`` bool) in pieces apart from the body none of whose Gaussians lies within
+    :func:`support_reach` of an SfM point."""
+    reach = support_reach(sfm_distance, gap)
+    apart = gap > 0
+    nearest = np.full(label.max() + 1, np.inf)
+    np.minimum.at(nearest, label[apart], sfm_distance[apart])
+    return apart & (nearest[label] > reach)
 
 
 def colour_teachers(body: np.ndarray, sfm_distance: np.ndarray | None, reach: float) -> np.ndarray:
@@ -182,15 +213,17 @@ def decide_plant(mu: np.ndarray, rgb: np.ndarray, weight: np.ndarray, candidate:
         plant[idx] = True
         return plant, {"decided_by": "position (too little to learn colours from)"}
     i, j, w, typical = neighbour_graph(mu[idx], rgb[idx], cfg.neighbours)
-    gap, size = body_gaps(mu[idx], cfg.attach_reach * orbit_radius)
+    gap, size, label = pieces(mu[idx], cfg.attach_reach * orbit_radius)
     body = idx[gap == 0]
     teach = colour_teachers(body, sfm_distance, cfg.teach_reach * typical)
     llr = colour_evidence(rgb[idx], rgb[teach], weight[teach], rgb[rest], weight[rest], cfg)
-    prior = cfg.prior_log_odds - (gap / max(cfg.gap_scale * size, 1e-12)) ** 2
+    held = np.ones(len(idx), bool) if sfm_distance is None else ~unsupported(sfm_distance[idx], gap, label)
+    prior = np.where(held, cfg.prior_log_odds, -cfg.prior_log_odds) - (gap / max(cfg.gap_scale * size, 1e-12)) ** 2
     keep = min_cut_labels(prior + llr, i, j, cfg.smoothness * w)
     plant[idx[keep]] = True
     facts = {"decided_by": "position, colour and neighbours", "candidates": int(len(idx)),
              "apart_from_body": int((gap > 0).sum()), "colours_from": int(len(teach)), "dropped": int((~keep).sum()),
-             "dropped_apart": int((~keep & (gap > 0)).sum()), "neighbour_cm": round(typical, 3),
+             "dropped_apart": int((~keep & (gap > 0)).sum()), "unsupported": int((~held).sum()),
+             "neighbour_cm": round(typical, 3),
              "body_size": round(size, 2)}
     return plant, facts
