@@ -3,7 +3,7 @@
 :func:`plantsplat.segment.object3d.object_model` gives the region the plant can be in (near the orbit's
 axis, above the ground, in view of nearly every frame, near an SfM point, outside the pot and the
 cube). A quick model can still put things there that are not plant: a patch of a blank wall drawn at
-the wrong depth, a few Gaussians beside the cube. Three more kinds of evidence hold in any room:
+the wrong depth, a few Gaussians beside the cube. Four more kinds of evidence hold in any room:
 
 - **appearance**, learned per capture from what geometry is sure of: the colours of the plant's
   body (below) where structure from motion found it (an SfM point within one neighbour spacing:
