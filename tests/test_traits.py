@@ -775,3 +775,15 @@ def test_a_top_lost_after_the_3d_decision_fails():
     unknown = result_checks(traits, 50_000, 22.1, 40.0, 10.0)
     assert quality(lost) == "failed" and quality(kept) == "ok" and quality(unknown) == "ok"
     assert [c.name for c in lost if not c.passed] == ["plant_top_short_of_decided_share"]
+
+
+def test_a_top_above_the_highest_cameras_warns_and_does_not_fail():
+    """Foreign render 108: the plant's true top is 1.8 cm above the highest camera, and its height was measured within
+    1.1 %. A top above the cameras is worth a warning (they saw it only from below), not a failed result."""
+    from plantsplat.checks import quality
+    from plantsplat.traits.checks import result_checks
+
+    above = result_checks({"height_cm": 23.2}, 50_000, 36.0, 34.2, 10.0)
+    below = result_checks({"height_cm": 23.2}, 50_000, 33.0, 34.2, 10.0)
+    assert quality(above) == "warning" and quality(below) == "ok"
+    assert [c.name for c in above if not c.passed] == ["plant_top_below_cameras_cm"]

@@ -8,8 +8,9 @@ A result is only as good as every stage under it, so the traits stage gathers ch
 - the model (``metrics.json``): how much of the held-out frames' masks the trained object model draws
   (a mask that takes room or misses plant tissue the other frames show is not drawn by a model that
   must agree with every frame), and its foreground PSNR;
-- the measurement: enough points on the plant, a plant of plausible size against the cube and the
-  camera's orbit (a plant cannot stand taller than the cameras that look down on it). The cube's
+- the measurement: enough points on the plant, a plant of plausible size against the cube, and a top below
+  the highest cameras (a warning: a capture's highest ring usually looks down on the plant, but a tall plant
+  can reach above it, as on one foreign render whose true top is 1.8 cm above its highest camera). The cube's
   measured size against the ArUco scale is a warning of :func:`plantsplat.traits.measure.measure_traits`.
 
 The thresholds live in :class:`QualityThresholds`. Each lies below every value that runs measured
@@ -231,7 +232,8 @@ def result_checks(traits: dict, plant_points: int, plant_top_cm: float | None, c
         out.append(Check("plant_height_cm", h, t.plant_height_cube_edges * cube_cm, ">=", "against the cube's size"))
     if plant_top_cm is not None and camera_top_cm is not None:
         out.append(Check("plant_top_below_cameras_cm", camera_top_cm - plant_top_cm, 0.0, ">=",
-                         "the highest cameras look down on the plant, so its top is below them"))
+                         "the plant's top lies above the highest cameras: they saw it only from below; check the "
+                         "top in traits.png, or film the highest ring above the plant", severity="warn"))
     if h and plant_top_cm is not None and decided_top_cm is not None:
         out.append(Check("plant_top_short_of_decided_share", (decided_top_cm - plant_top_cm) / h, t.top_short_share,
                          "<=", "how far the measured top lies below the top of the plant the segment stage decided "
