@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from plantsplat.segment.decide import DecideConfig, body_gaps, decide_plant, min_cut_labels
+from plantsplat.segment.decide import DecideConfig, decide_plant, min_cut_labels, pieces
 
 
 def _energy(labels: np.ndarray, unary: np.ndarray, i: np.ndarray, j: np.ndarray, w: np.ndarray) -> float:
@@ -96,19 +96,20 @@ def test_a_wall_patch_touching_a_leaf_does_not_teach_the_plant_its_colour():
     sfm_distance = cKDTree(sfm).query(mu)[0]
     whole, facts_whole = decide_plant(mu, rgb, weight, candidate, rest, 45.0)
     taught, facts = decide_plant(mu, rgb, weight, candidate, rest, 45.0, sfm_distance)
-    gap, _ = body_gaps(mu[candidate], DecideConfig().attach_reach * 45.0)
+    gap, _, _ = pieces(mu[candidate], DecideConfig().attach_reach * 45.0)
     assert (gap[-400:] == 0).all() and whole[sheet_idx].mean() > 0.5, facts_whole  # the patch joined the body
     assert not taught[sheet_idx].any() and taught[truth].mean() > 0.99, facts
 
 
-def test_body_gaps_measure_pieces_from_the_largest():
+def test_pieces_are_measured_from_the_largest():
     rng = np.random.default_rng(1)
     body = rng.normal(0, 3, (2000, 3))
     leaf = rng.normal(0, 0.3, (200, 3)) + [14, 0, 0]  # a leaf whose petiole the model lost
     speck = rng.normal(0, 0.3, (10, 3)) + [0, 30, 0]
-    gap, size = body_gaps(np.concatenate([body, leaf, speck]), 2.0)
+    gap, size, label = pieces(np.concatenate([body, leaf, speck]), 2.0)
     assert (gap[:2000] == 0).mean() > 0.97 and 3 < gap[2000:2200].min() < 8 < 20 < gap[2200:].min()
     assert 5 < size < 12
+    assert len(set(label[2000:2200])) == 1 and len(set(label[2200:])) == 1 and label[2000] != label[2200]
 
 
 def test_too_little_evidence_keeps_the_candidates():
@@ -133,7 +134,7 @@ def test_a_piece_apart_that_no_sfm_point_holds_goes_and_one_that_a_point_holds_s
     rest = np.concatenate([rest, np.zeros(60, bool)])
     textured = np.concatenate([np.flatnonzero(truth)[::3], [n - 60 + 3]])  # SfM points on the body and on the leaf
     sfm_distance = cKDTree(mu[textured] + rng.normal(0, 0.05, (len(textured), 3))).query(mu)[0]
-    gap, _ = body_gaps(mu[candidate], DecideConfig().attach_reach * 45.0)
+    gap, _, _ = pieces(mu[candidate], DecideConfig().attach_reach * 45.0)
     assert (gap[-60:] > 3).all()  # both apart from the body
     plant, facts = decide_plant(mu, rgb, weight, candidate, rest, 45.0, sfm_distance)
     assert plant[n - 60:n - 30].all() and not plant[n - 30:].any(), facts

@@ -12,7 +12,7 @@ the wrong depth, a few Gaussians beside the cube. Four more kinds of evidence ho
   (:func:`colour_evidence`). A patch of blank wall the quick model hangs against a leaf joins the body,
   but SfM finds nothing on it, so it does not teach the plant's colours the wall's;
 - **attachment**: the plant is one body; the largest piece of candidates linked at a few centimetres
-  is it (:func:`body_gaps`). A piece apart from it is less likely plant the farther it is:
+  is it (:func:`pieces`). A piece apart from it is less likely plant the farther it is:
   its prior falls with the square of the gap, measured against the body's size, so a leaf whose
   petiole the quick model lost or a fruit hanging over the pot's rim stays unless its colour is the
   room's, while a patch of wall above the plant or a clump by the cube, far from the body, goes;
@@ -145,13 +145,6 @@ def min_cut_labels(unary: np.ndarray, i: np.ndarray, j: np.ndarray, w: np.ndarra
     return side[:n]
 
 
-def body_gaps(mu: np.ndarray, link: float) -> tuple[np.ndarray, float]:
-    """How far each of the points ``mu`` ``[N, 3]`` lies from the plant's body, through the piece it belongs to:
-    ``(gap [N], body size)`` (see :func:`pieces`)."""
-    gap, size, _ = pieces(mu, link)
-    return gap, size
-
-
 def pieces(mu: np.ndarray, link: float) -> tuple[np.ndarray, float, np.ndarray]:
     """The pieces of the points ``mu`` ``[N, 3]`` and how far each lies from the plant's body: ``(gap [N], body size,
     piece label [N])``. Points within ``link`` of each other form a piece; the largest piece is the body (gap 0);
@@ -205,7 +198,7 @@ def decide_plant(mu: np.ndarray, rgb: np.ndarray, weight: np.ndarray, candidate:
     the colour models (its opacity); ``rest``: Gaussians surely not plant (the far room, the floor, the pot, the
     cube); ``orbit_radius``: the cameras' distance from the axis (model units); ``sfm_distance`` ``[N]``: each
     Gaussian's distance to the nearest SfM point (None: none known). The plant's colours are learned from its body
-    (:func:`body_gaps`) where SfM found it (:func:`colour_teachers`), the rest's from ``rest``."""
+    (:func:`pieces`) where SfM found it (:func:`colour_teachers`), the rest's from ``rest``."""
     cfg = cfg or DecideConfig()
     idx = np.flatnonzero(candidate)
     plant = np.zeros(len(mu), bool)
