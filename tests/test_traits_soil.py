@@ -53,6 +53,17 @@ def test_soil_hidden_under_leaves_but_for_a_few_patches():
     assert layer is not None and layer.z == pytest.approx(10.2, abs=0.1)
 
 
+def test_soil_found_under_leaves_far_denser_than_its_patches():
+    """Foreign render 110 with its points triangulated again from every match: the leaves by the rim hold twice the
+    points of the soil's few visible patches in a window. The soil is still the lowest layer, at its peak, whatever
+    the leaves above it hold; a few stray points under it do not make a layer."""
+    rng = np.random.default_rng(7)
+    rim_leaves = np.column_stack([_disc(rng, 500, 0.0)[:, :2], rng.uniform(RIM_Z - 1.2, RIM_Z, 500)])
+    pts = np.concatenate([_pot_scene(rng, 12.1, 60, leaves=150, under=8), rim_leaves])
+    layer = _layer(pts)
+    assert layer is not None and layer.z == pytest.approx(12.1, abs=0.1)
+
+
 def test_soil_wholly_hidden_is_not_invented():
     """No soil point at all: what SfM sees lowest in the pot is the crown and the petioles' feet near the axis, a layer
     that does not fill the pot, so nothing comes out (the stage then falls back to the quick model's band or the rim's
