@@ -17,6 +17,7 @@ kept in ``--work`` so that a re-run reuses the poses (the segment stage always r
 
 Usage:
     .venv/bin/python benchmarks/bench_segment.py [--seeds 81 82 83 84 85] [--foreign 101 102 103 104 108 110] [--no-romi]
+    .venv/bin/python benchmarks/bench_segment.py --e2e-work /tmp/plantsplat_bench_e2e  # the masks bench_e2e.py left
 """
 
 from __future__ import annotations
@@ -157,6 +158,29 @@ def synthetic(seed: int, cache: Path, ws: Workspace) -> dict:
     return {**score(ws, truth), **far_from_plant(ws, true_plant_points(cap))}
 
 
+def kept_runs(work: Path) -> dict[str, dict]:
+    """Scores of the masks that `bench_e2e.py`'s runs left in ``work`` (its ``--work``: ``foreign_NNN`` and the demo's
+    ``demo``/``demo_SEED`` folders), the segment stage not run again."""
+    rows = {}
+    for d in sorted(p for p in work.iterdir() if p.is_dir()):
+        if d.name.startswith("foreign_"):
+            cap, ws = DATASETS / "foreign_renders" / d.name.split("_", 1)[1], Workspace(d)
+            def truth_path(f, cap=cap):
+                return cap / "masks" / f"{f['source_index']:05d}.png"
+        elif d.name == "demo" or d.name.startswith("demo_"):
+            cap, ws = d / "capture", Workspace(d / "workspace")
+            def truth_path(f, cap=cap):
+                return cap / "masks" / f"frame_{f['source_index']:05d}.png"
+        else:
+            continue
+        if not ws.segment_json.is_file() or not cap.is_dir():
+            continue
+        truth = {f["name"]: read_image(truth_path(f), "gray") > 127 for f in read_json(ws.frames_json)["frames"]
+                 if truth_path(f).is_file()}
+        rows[d.name] = {**score(ws, truth), **far_from_plant(ws, true_plant_points(cap))}
+    return rows
+
+
 def romi_virtual(ws: Workspace) -> dict | None:
     """The ROMI scanner's virtual plant (18 views, no cube): its given cameras, the segmenter, its masks."""
     from plantsplat.poses import PosesConfig
@@ -193,12 +217,18 @@ def main() -> None:
                     help="synthetic captures (shared with bench_poses)")
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "plantsplat_bench_segment")
     ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--e2e-work", type=Path, default=None,
+                    help="score the masks bench_e2e.py's runs left in this folder instead (no segment stage run)")
     args = ap.parse_args()
     os.environ.setdefault("PLANTSPLAT_NO_PROGRESS", "1")
     setup_logging(quiet=True)
     info = machine_info()
     info["loadavg_start"] = list(os.getloadavg())
-    rows = {}
+    rows = kept_runs(args.e2e_work) if args.e2e_work else {}
+    if args.e2e_work:
+        args.foreign, args.seeds, args.no_romi = [], [], True
+        for name, row in rows.items():
+            print(name, json.dumps({k: v for k, v in row.items() if k not in ("per_frame", "object")}), flush=True)
     for cap in args.foreign:
         d = DATASETS / "foreign_renders" / cap
         if d.is_dir():
@@ -214,7 +244,7 @@ def main() -> None:
     romi = None if args.no_romi else romi_virtual(Workspace(args.work / "romi_virtual"))
     if romi:
         print("romi", json.dumps({k: v for k, v in romi.items() if k not in ("per_frame", "object")}), flush=True)
-    own = [r["mean_iou"] for k, r in rows.items() if k.startswith("synth")]
+    own = [r["mean_iou"] for k, r in rows.items() if k.startswith(("synth", "demo"))]
     met = {k: {"mean_iou": r["mean_iou"] >= TARGETS["mean_iou_every_capture"],
                "worst_frame": r["worst_iou"] >= TARGETS["worst_frame_iou"],
                "seconds": r["seconds"] <= TARGETS["seconds_120_frames"],
@@ -226,7 +256,10 @@ def main() -> None:
                "far_share_by_capture": {k: r.get("far_share") for k, r in rows.items()},
                "own_seeds_mean_iou": round(float(np.mean(own)), 4) if own else None}
     info["loadavg_end"] = list(os.getloadavg())
+    mode = (f"masks of the bench_e2e.py runs kept in {args.e2e_work} (the segment stage not run again)" if args.e2e_work
+            else "frames and poses as a user runs them, then the segment stage")
     write_json_atomic(args.out, {"benchmark": "segment", "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                                 "mode": mode,
                                  "machine": info, "targets": TARGETS, "summary": summary, "targets_met": met,
                                  "romi_virtual": romi, "captures": rows})
     print(json.dumps(summary, indent=1))
