@@ -155,12 +155,15 @@ def pieces(mu: np.ndarray, link: float) -> tuple[np.ndarray, float, np.ndarray]:
     _, label = connected_components(graph, directed=False)
     body = label == np.argmax(np.bincount(label))
     size = float(np.percentile(np.linalg.norm(mu[body] - np.median(mu[body], axis=0), axis=1), BODY_SIZE_PERCENTILE))
-    d = cKDTree(mu[body]).query(mu)[0]
-    gap = np.zeros(len(mu))
-    for piece in np.unique(label[~body]):
-        m = label == piece
-        gap[m] = d[m].min()
+    gap = piece_min(cKDTree(mu[body]).query(mu)[0], label)  # 0 on the body, whose points are their own nearest
     return gap, size, label
+
+
+def piece_min(values: np.ndarray, label: np.ndarray) -> np.ndarray:
+    """Each point's piece's smallest value: ``values`` and piece ``label`` ``[N]``. ``[N]``"""
+    smallest = np.full(label.max() + 1, np.inf)
+    np.minimum.at(smallest, label, values)
+    return smallest[label]
 
 
 def support_reach(sfm_distance: np.ndarray, gap: np.ndarray) -> float:
@@ -172,11 +175,7 @@ def support_reach(sfm_distance: np.ndarray, gap: np.ndarray) -> float:
 def unsupported(sfm_distance: np.ndarray, gap: np.ndarray, label: np.ndarray) -> np.ndarray:
     """The candidates (``[N]`` bool) in pieces apart from the body none of whose Gaussians lies within
     :func:`support_reach` of an SfM point."""
-    reach = support_reach(sfm_distance, gap)
-    apart = gap > 0
-    nearest = np.full(label.max() + 1, np.inf)
-    np.minimum.at(nearest, label[apart], sfm_distance[apart])
-    return apart & (nearest[label] > reach)
+    return (gap > 0) & (piece_min(sfm_distance, label) > support_reach(sfm_distance, gap))
 
 
 def colour_teachers(body: np.ndarray, sfm_distance: np.ndarray | None, reach: float) -> np.ndarray:

@@ -188,7 +188,7 @@ def refine(rgb: np.ndarray, prior: np.ndarray, band_px: int = 6, thin_px: int = 
             near = cv2.dilate(narrow_parts(crop, thin_px).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
             left_out = near & ~cut
             cut[left_out] = likelier_plant(bgr[left_out], fgd, bgd)
-        put_in = cut & (cv2.erode(cv2.dilate(crop, k), k) > 0) & (crop == 0)  # in the prior's narrow gaps
+        put_in = cut & (cv2.erode(grown.astype(np.uint8), k) > 0) & (crop == 0)  # in the prior's narrow gaps
         cut[put_in] = likelier_plant(bgr[put_in], fgd, bgd)
     out = np.zeros_like(fg)
     out[y0:y1, x0:x1] = cut
