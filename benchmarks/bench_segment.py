@@ -134,13 +134,21 @@ def prepare(video: Path, ws: Workspace) -> None:
         poses_stage.run(ws)
 
 
+def true_masks(cap: Path, ws: Workspace, pattern: str) -> dict[str, np.ndarray]:
+    """The true masks of ``ws``'s frames that ``cap`` holds (``cap/masks/`` + ``pattern`` of the video frame's index),
+    by frame name: the foreign renders mask every 10th video frame (``{:05d}.png``), plantsplat's own captures every
+    frame (``frame_{:05d}.png``)."""
+    paths = {f["name"]: cap / "masks" / pattern.format(f["source_index"]) for f in read_json(ws.frames_json)["frames"]}
+    return {name: read_image(p, "gray") > 127 for name, p in paths.items() if p.is_file()}
+
+
+FOREIGN_MASKS = "{:05d}.png"
+OWN_MASKS = "frame_{:05d}.png"
+
+
 def foreign(cap: Path, ws: Workspace) -> dict:
     prepare(cap / "video.mp4", ws)
-    truth = {}
-    for f in read_json(ws.frames_json)["frames"]:
-        p = cap / "masks" / f"{f['source_index']:05d}.png"
-        if p.is_file():
-            truth[f["name"]] = read_image(p, "gray") > 127
+    truth = true_masks(cap, ws, FOREIGN_MASKS)
     segmentation.run(ws, SegmentConfig())
     return {**score(ws, truth), **far_from_plant(ws, true_plant_points(cap))}
 
@@ -152,8 +160,7 @@ def synthetic(seed: int, cache: Path, ws: Workspace) -> dict:
     if not (cap / "ground_truth.json").is_file():
         generate(SynthConfig(out=cap, seed=seed, force=True))
     prepare(cap / "video.mp4", ws)
-    truth = {f["name"]: read_image(cap / "masks" / f"frame_{f['source_index']:05d}.png", "gray") > 127
-             for f in read_json(ws.frames_json)["frames"]}
+    truth = true_masks(cap, ws, OWN_MASKS)
     segmentation.run(ws, SegmentConfig())
     return {**score(ws, truth), **far_from_plant(ws, true_plant_points(cap))}
 
@@ -164,19 +171,14 @@ def kept_runs(work: Path) -> dict[str, dict]:
     rows = {}
     for d in sorted(p for p in work.iterdir() if p.is_dir()):
         if d.name.startswith("foreign_"):
-            cap, ws = DATASETS / "foreign_renders" / d.name.split("_", 1)[1], Workspace(d)
-            def truth_path(f, cap=cap):
-                return cap / "masks" / f"{f['source_index']:05d}.png"
+            cap, ws, pattern = DATASETS / "foreign_renders" / d.name.split("_", 1)[1], Workspace(d), FOREIGN_MASKS
         elif d.name == "demo" or d.name.startswith("demo_"):
-            cap, ws = d / "capture", Workspace(d / "workspace")
-            def truth_path(f, cap=cap):
-                return cap / "masks" / f"frame_{f['source_index']:05d}.png"
+            cap, ws, pattern = d / "capture", Workspace(d / "workspace"), OWN_MASKS
         else:
             continue
         if not ws.segment_json.is_file() or not cap.is_dir():
             continue
-        truth = {f["name"]: read_image(truth_path(f), "gray") > 127 for f in read_json(ws.frames_json)["frames"]
-                 if truth_path(f).is_file()}
+        truth = true_masks(cap, ws, pattern)
         rows[d.name] = {**score(ws, truth), **far_from_plant(ws, true_plant_points(cap))}
     return rows
 
