@@ -166,6 +166,33 @@ def test_a_soil_the_quick_model_smears_in_depth_is_the_sfm_points_layer():
     assert obj.plant[kind == 2].mean() < 0.05 and obj.plant[kind == 1].mean() > 0.95
 
 
+def test_the_crown_on_a_soil_sfm_found_is_not_pot_but_the_soil_heaped_by_the_wall_is():
+    """Issue 40. Where SfM points put the soil, what stands on it in the crown's disc around the axis (the crown, the
+    petioles' feet) is left to the evidence; over the rest of the inside the margin stays, for soil the quick model
+    draws above its true height against the wall. A soil of the quick model's own keeps the margin everywhere."""
+    from dataclasses import replace
+
+    from plantsplat.segment.object3d import CROWN_SHARE, POT_INSIDE_SHARE, Pot
+    from plantsplat.segment.soil import soil_layer
+
+    pot = Pot(centre=np.array([25.0, 10.0]), rim_z=12.0, soil_z=9.5, heights=np.array([0.0, 12.0]),
+              radii=np.array([6.0, 8.0]), soil_bottom=9.5)
+    crown_edge = CROWN_SHARE * POT_INSIDE_SHARE * 8.0
+    probe = np.array([[25.0, 10.0, 9.9], [25.0 + 0.9 * crown_edge, 10.0, 9.9],  # the crown, 4 mm above the soil
+                      [25.0 + 1.2 * crown_edge, 10.0, 9.9], [25.0 + 5.5, 10.0, 10.2],  # soil heaped outside it
+                      [25.0, 10.0, 9.3], [25.0, 10.0, 10.6]])  # under the soil; above the margin
+    sfm = replace(pot, soil_points=120)
+    assert sfm.contains(probe, margin=1.0).tolist() == [False, False, True, True, True, False]
+    assert pot.contains(probe, margin=1.0).tolist() == [True, True, True, True, True, False]
+    rng = np.random.default_rng(8)  # the margin in the crown's disc is the SfM layer's own thickness
+    rs, a = 6.0 * np.sqrt(rng.uniform(0, 1, 300)), rng.uniform(0, 2 * np.pi, 300)
+    layer = soil_layer(np.stack([25.0 + rs * np.cos(a), 10.0 + rs * np.sin(a), rng.normal(9.5, 0.1, 300)], 1),
+                       pot.centre, 6.4, 12.0, slab=0.5, depth=6.0)
+    assert layer.spread == pytest.approx(0.1, abs=0.02)
+    thick = replace(sfm, soil_spread=layer.spread)
+    assert thick.contains(np.array([[25.0, 10.0, 9.55], [25.0, 10.0, 9.75]]), margin=1.0).tolist() == [True, False]
+
+
 def test_soil_drawn_by_a_few_wide_gaussians_is_found_by_their_footprints():
     """Issue 41. A quick model draws an even soil with a few wide, flat Gaussians: their centres alone cover too little
     of the disc inside the rim, their footprints (one standard deviation) cover it."""

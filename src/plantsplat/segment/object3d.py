@@ -188,6 +188,9 @@ class Pot:
     soil_points: int = 0
     """How many SfM points lie in the soil's layer when :attr:`soil_z` is theirs (:func:`with_sfm_soil`); 0 when it is
     the quick model's."""
+    soil_spread: float = 0.0
+    """The RMS distance of those SfM points from :attr:`soil_z` (cm): how thick the soil's surface is (about a
+    millimetre on the benchmark captures); 0 for the quick model's soil."""
 
     @property
     def soil_seen(self) -> bool:
@@ -195,21 +198,34 @@ class Pot:
         return self.soil_z < self.rim_z
 
     def contains(self, points: np.ndarray, margin: float) -> np.ndarray:
-        """Points ``[N, 3]`` of the pot (its body below the soil, its wall up to the rim), grown by ``margin``. ``[N]``
+        """Points ``[N, 3]`` of the pot (its body up to the soil, its wall up to the rim), grown by ``margin``. ``[N]``
 
         Where the soil was not seen, only the wall is known to be pot: the inside below the rim may hold the crown
-        and the petioles' feet (the leaves hid them with the soil), and is left to the other evidence."""
+        and the petioles' feet (the leaves hid them with the soil), and is left to the other evidence. Where SfM
+        points put the soil, the body's margin above it is narrower in the crown's disc (:meth:`soil_margin`)."""
         z = points[:, 2]
         r = np.interp(z, self.heights, self.radii)
         d = np.linalg.norm(points[:, :2] - self.centre, axis=1)
-        body = z < self.soil_z + margin if self.soil_seen else np.zeros(len(z), bool)
+        body = z <= self.soil_z + self.soil_margin(d, margin) if self.soil_seen else np.zeros(len(z), bool)
         wall = (d > r - self.wall) & (z < self.rim_z + margin)
         return (d < r + margin) & (z > -margin) & (body | wall)
+
+    def soil_margin(self, d: np.ndarray, margin: float) -> np.ndarray:
+        """How far above the soil the pot's body reaches at distances ``d`` ``[N]`` from its axis (cm). ``margin``
+        for the quick model's own soil, drawn a centimetre or more thick. Where SfM points put the soil
+        (:func:`with_sfm_soil`), ``margin`` still over the outer part of the inside, where the soil heaps against the
+        wall and the quick model draws it above the points' layer, but only the layer's own thickness
+        (:attr:`soil_spread`) within :data:`CROWN_SHARE` of the inside's radius, where the crown and the petioles'
+        feet stand on the soil: what lies there above it is left to the evidence. ``[N]``"""
+        if not self.soil_points:
+            return np.full(len(d), float(margin))
+        crown = d < CROWN_SHARE * POT_INSIDE_SHARE * float(self.radii[-1])
+        return np.where(crown, min(self.soil_spread, float(margin)), float(margin))
 
     def summary(self) -> dict:
         return {"centre_cm": np.round(self.centre, 2).tolist(), "rim_z_cm": round(self.rim_z, 2),
                 "soil_z_cm": round(self.soil_z, 2), "soil_bottom_z_cm": round(self.soil_bottom, 2),
-                "soil_sfm_points": self.soil_points,
+                "soil_sfm_points": self.soil_points, "soil_spread_cm": round(self.soil_spread, 3),
                 "rim_radius_cm": round(float(self.radii[-1]), 2), "base_radius_cm": round(float(self.radii[0]), 2)}
 
 
@@ -263,6 +279,9 @@ POT_INSIDE_SHARE = 0.8
 """The pot's inside, where its soil is looked for: this share of the rim's radius (within the wall and the rim's lip)."""
 SOIL_DEPTH_CM = 6.0
 """How far below the rim the soil is looked for (cm)."""
+CROWN_SHARE = 0.5
+"""The crown's disc: this share of the pot's inside radius around its axis (a quarter of the inside's area), where
+what stands on a soil SfM points put is left to the evidence (:meth:`Pot.soil_margin`)."""
 FOOTPRINT_FLOOR_CM2 = 1e-6
 """Added to a footprint's covariance (cm²) so that a needle-thin Gaussian's can be inverted."""
 
@@ -324,7 +343,7 @@ def with_sfm_soil(pot: Pot, sfm_points: np.ndarray) -> Pot:
     layer = pot_soil_layer(sfm_points, pot.centre, pot.radii[-1], pot.rim_z)
     if layer is None:
         return pot
-    return replace(pot, soil_z=layer.z, soil_bottom=layer.z, soil_points=layer.points)
+    return replace(pot, soil_z=layer.z, soil_bottom=layer.z, soil_points=layer.points, soil_spread=layer.spread)
 
 
 def soil_band_in_pot(points: np.ndarray, centre: np.ndarray, r_rim: float, z_rim: float, slab: float,

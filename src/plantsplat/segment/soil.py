@@ -50,10 +50,12 @@ MIN_LAYER_POINTS = 10
 
 @dataclass(frozen=True)
 class SoilLayer:
-    """The soil found among the SfM points: its height ``z`` (cm) and how many points lie in its layer."""
+    """The soil found among the SfM points: its height ``z`` (cm), how many points lie in its layer and their RMS
+    distance from ``z`` (cm)."""
 
     z: float
     points: int
+    spread: float = 0.0
 
 
 def soil_layer(points: np.ndarray, centre: np.ndarray, inside_radius: float, rim_z: float, slab: float, depth: float,
@@ -81,4 +83,5 @@ def soil_layer(points: np.ndarray, centre: np.ndarray, inside_radius: float, rim
     inside = (z >= lo) & (z < lo + slab)
     if np.sqrt(np.mean(r[inside] ** 2)) < spread * inside_radius:
         return None  # the crown and the petioles' feet, standing on a soil no frame saw
-    return SoilLayer(z=float(np.median(z[inside])), points=int(inside.sum()))
+    height = float(np.median(z[inside]))
+    return SoilLayer(z=height, points=int(inside.sum()), spread=float(np.sqrt(np.mean((z[inside] - height) ** 2))))
