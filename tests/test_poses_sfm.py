@@ -208,7 +208,10 @@ def test_points_are_triangulated_again_from_every_match(synth_run, tmp_path):
                           tmp_path / "tri", PosesConfig().sfm_options())
     assert again.num_points3D() > 0.8 * rec.num_points3D()
     now = {im.name: im.num_points3D for im in again.images.values() if im.has_pose}
-    assert set(now) == set(observed) and np.median([now[n] / observed[n] for n in now]) > 0.8
+    assert set(now) == set(observed) and np.median([now[n] / observed[n] for n in now if observed[n]]) > 0.8
+    # a frame the path check left out and localisation brought back is in the stage's model without observations
+    # (poses.localize.add_frames; one on the 2-core AMD machine, 2026-11-28): made again, it has points too
+    assert min(now.values()) > 0
     # the adjustment holds the cameras by their points alone (the cube's control points are not in it): they move
     # a little, and the model stays as right as the stage's own (test_synthetic_capture_metric_poses)
     moved = compare_poses(model_c2w(again), model_c2w(rec))
