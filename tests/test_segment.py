@@ -188,8 +188,8 @@ def test_the_crown_on_a_soil_sfm_found_is_not_pot_but_the_soil_heaped_by_the_wal
     rs, a = 6.0 * np.sqrt(rng.uniform(0, 1, 300)), rng.uniform(0, 2 * np.pi, 300)
     layer = soil_layer(np.stack([25.0 + rs * np.cos(a), 10.0 + rs * np.sin(a), rng.normal(9.5, 0.1, 300)], 1),
                        pot.centre, 6.4, 12.0, slab=0.5, depth=6.0)
-    assert layer.spread == pytest.approx(0.1, abs=0.02)
-    thick = replace(sfm, soil_spread=layer.spread)
+    assert layer.thickness == pytest.approx(0.1, abs=0.02)
+    thick = replace(sfm, soil_thickness=layer.thickness)
     assert thick.contains(np.array([[25.0, 10.0, 9.55], [25.0, 10.0, 9.75]]), margin=1.0).tolist() == [True, False]
 
 

@@ -188,7 +188,7 @@ class Pot:
     soil_points: int = 0
     """How many SfM points lie in the soil's layer when :attr:`soil_z` is theirs (:func:`with_sfm_soil`); 0 when it is
     the quick model's."""
-    soil_spread: float = 0.0
+    soil_thickness: float = 0.0
     """The RMS distance of those SfM points from :attr:`soil_z` (cm): how thick the soil's surface is (about a
     millimetre on the benchmark captures); 0 for the quick model's soil."""
 
@@ -215,17 +215,17 @@ class Pot:
         for the quick model's own soil, drawn a centimetre or more thick. Where SfM points put the soil
         (:func:`with_sfm_soil`), ``margin`` still over the outer part of the inside, where the soil heaps against the
         wall and the quick model draws it above the points' layer, but only the layer's own thickness
-        (:attr:`soil_spread`) within :data:`CROWN_SHARE` of the inside's radius, where the crown and the petioles'
+        (:attr:`soil_thickness`) within :data:`CROWN_SHARE` of the inside's radius, where the crown and the petioles'
         feet stand on the soil: what lies there above it is left to the evidence. ``[N]``"""
         if not self.soil_points:
             return np.full(len(d), float(margin))
         crown = d < CROWN_SHARE * POT_INSIDE_SHARE * float(self.radii[-1])
-        return np.where(crown, min(self.soil_spread, float(margin)), float(margin))
+        return np.where(crown, min(self.soil_thickness, float(margin)), float(margin))
 
     def summary(self) -> dict:
         return {"centre_cm": np.round(self.centre, 2).tolist(), "rim_z_cm": round(self.rim_z, 2),
                 "soil_z_cm": round(self.soil_z, 2), "soil_bottom_z_cm": round(self.soil_bottom, 2),
-                "soil_sfm_points": self.soil_points, "soil_spread_cm": round(self.soil_spread, 3),
+                "soil_sfm_points": self.soil_points, "soil_thickness_cm": round(self.soil_thickness, 3),
                 "rim_radius_cm": round(float(self.radii[-1]), 2), "base_radius_cm": round(float(self.radii[0]), 2)}
 
 
@@ -343,7 +343,7 @@ def with_sfm_soil(pot: Pot, sfm_points: np.ndarray) -> Pot:
     layer = pot_soil_layer(sfm_points, pot.centre, pot.radii[-1], pot.rim_z)
     if layer is None:
         return pot
-    return replace(pot, soil_z=layer.z, soil_bottom=layer.z, soil_points=layer.points, soil_spread=layer.spread)
+    return replace(pot, soil_z=layer.z, soil_bottom=layer.z, soil_points=layer.points, soil_thickness=layer.thickness)
 
 
 def soil_band_in_pot(points: np.ndarray, centre: np.ndarray, r_rim: float, z_rim: float, slab: float,

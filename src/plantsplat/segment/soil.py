@@ -55,7 +55,7 @@ class SoilLayer:
 
     z: float
     points: int
-    spread: float = 0.0
+    thickness: float = 0.0
 
 
 def soil_layer(points: np.ndarray, centre: np.ndarray, inside_radius: float, rim_z: float, slab: float, depth: float,
@@ -84,4 +84,4 @@ def soil_layer(points: np.ndarray, centre: np.ndarray, inside_radius: float, rim
     if np.sqrt(np.mean(r[inside] ** 2)) < spread * inside_radius:
         return None  # the crown and the petioles' feet, standing on a soil no frame saw
     height = float(np.median(z[inside]))
-    return SoilLayer(z=height, points=int(inside.sum()), spread=float(np.sqrt(np.mean((z[inside] - height) ** 2))))
+    return SoilLayer(z=height, points=int(inside.sum()), thickness=float(np.sqrt(np.mean((z[inside] - height) ** 2))))
