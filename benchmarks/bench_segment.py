@@ -134,16 +134,17 @@ def prepare(video: Path, ws: Workspace) -> None:
         poses_stage.run(ws)
 
 
+FOREIGN_MASKS = "{:05d}.png"
+"""The foreign renders' true masks, of every 10th video frame, by the frame's index."""
+OWN_MASKS = "frame_{:05d}.png"
+"""plantsplat's own captures' true masks, of every video frame."""
+
+
 def true_masks(cap: Path, ws: Workspace, pattern: str) -> dict[str, np.ndarray]:
-    """The true masks of ``ws``'s frames that ``cap`` holds (``cap/masks/`` + ``pattern`` of the video frame's index),
-    by frame name: the foreign renders mask every 10th video frame (``{:05d}.png``), plantsplat's own captures every
-    frame (``frame_{:05d}.png``)."""
+    """The true masks of ``ws``'s frames that ``cap`` holds (``cap/masks/`` + ``pattern`` of the video frame's index:
+    :data:`FOREIGN_MASKS` or :data:`OWN_MASKS`), by frame name."""
     paths = {f["name"]: cap / "masks" / pattern.format(f["source_index"]) for f in read_json(ws.frames_json)["frames"]}
     return {name: read_image(p, "gray") > 127 for name, p in paths.items() if p.is_file()}
-
-
-FOREIGN_MASKS = "{:05d}.png"
-OWN_MASKS = "frame_{:05d}.png"
 
 
 def foreign(cap: Path, ws: Workspace) -> dict:
