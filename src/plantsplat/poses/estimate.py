@@ -6,7 +6,9 @@ runs them over a workspace).
    capture; every pair when that is affordable), COLMAP's incremental mapper; frames it leaves out are matched
    again against the registered frames near them and mapping continues from the model. The kept model's points
    are then triangulated again from every verified match, with its cameras as they are at the end, and
-   bundle-adjusted. A user's model is imported instead by :func:`import_model`.
+   bundle-adjusted; frames still left out (by the mappers or the path check of step 2) are localised against it
+   round by round, the points made again after each (:func:`localize_in_rounds`). A user's model is imported
+   instead by :func:`import_model`.
 2. Frames whose camera leaves the path of its video neighbours are left out (:func:`leave_out_off_path`,
    :func:`plantsplat.poses.checks.off_path`).
 3. The cube gives scale, gravity and origin only (:func:`calibrate_model`,
@@ -42,6 +44,8 @@ from plantsplat.poses.localize import add_frames, localize_frames
 from plantsplat.poses.pairs import build_vocabulary, pairs_for_missing, retrieval_pairs, video_pairs
 from plantsplat.poses.sfm import (
     MAP_THREADS,
+    RETRIANGULATED_BA_ITERATIONS,
+    ROUND_BA_ITERATIONS,
     colmap_logging,
     extract_features,
     finish_global_mapping,
@@ -199,7 +203,8 @@ def _most_consistent(db: Path, vocab: Path | None, names: list[str], times: list
 
 def register(ws: Workspace, names: list[str], times: list[float], cfg: PosesConfig, report: dict):
     """SfM on whole frames (no masks, no cube); returns the model (model frame) :func:`_most_consistent` keeps, its
-    frames off the camera's path (``times``: the frames' times in the video) left out."""
+    frames off the camera's path (``times``: the frames' times in the video) left out, its points made again, and the
+    frames left out localised against it (:func:`localize_in_rounds`)."""
     work = ws.root / WORK_DIR
     timings = report["timings"]
     t0 = time.perf_counter()
@@ -217,18 +222,19 @@ def register(ws: Workspace, names: list[str], times: list[float], cfg: PosesConf
     t0 = time.perf_counter()
     rec = _triangulated_again(rec, db, ws, cfg)
     timings["retriangulate_s"] = time.perf_counter() - t0
-    return rec
+    return localize_in_rounds(rec, db, ws, names, times, cfg, report)
 
 
-def _triangulated_again(rec, db: Path, ws: Workspace, cfg: PosesConfig):
+def _triangulated_again(rec, db: Path, ws: Workspace, cfg: PosesConfig, iterations: int = RETRIANGULATED_BA_ITERATIONS):
     """``rec``'s cameras with every verified match triangulated again, then bundle-adjusted (points, cameras, focal
-    length and distortion).
+    length and distortion; at most ``iterations``).
 
     Incremental mapping makes each point from the cameras as they were when the point was made, and the pieces
     of a merge or of continued mapping were made apart; made again from the final cameras and every match, the
     points hold each camera by all it sees (docs/stages/poses.md has the measured effect)."""
     poses = {im.name: im.cam_from_world() for im in rec.images.values() if im.has_pose}
-    return retriangulate(rec, poses, db, ws.images_dir, ws.root / WORK_DIR / "retriangulated", cfg.sfm_options())
+    return retriangulate(rec, poses, db, ws.images_dir, ws.root / WORK_DIR / "retriangulated", cfg.sfm_options(),
+                         iterations)
 
 
 def import_model(ws: Workspace, names: list[str], cfg: PosesConfig, report: dict):
@@ -295,23 +301,58 @@ def _composed(new, old):
     return new
 
 
-def localize_left_out(rec, ws: Workspace, names: list[str], times: list[float], cfg: PosesConfig, report: dict) -> None:
-    """Frames left out so far, localised against the model's points (:mod:`plantsplat.poses.localize`); those
-    whose camera then lies on the path of its video neighbours stay."""
+def _localized_on_path(rec, db: Path, names: list[str], times: list[float], cfg: PosesConfig) -> list[str]:
+    """The frames missing from ``rec`` localised against its points (:mod:`plantsplat.poses.localize`) and added,
+    those whose camera then leaves the path of its video neighbours taken out again; returns the names kept."""
     missing = [n for n in names if n not in registered_images(rec)]
     if not missing or not rec.num_points3D():
-        return
-    t0 = time.perf_counter()
-    added = add_frames(rec, ws.root / WORK_DIR / "database.db", localize_frames(rec, ws.root / WORK_DIR / "database.db",
-                                                                                missing))
-    before = set(report.get("off_path", []))
-    dropped = set(leave_out_off_path(rec, names, times, cfg, report)) if added else set()
-    report["off_path"] = sorted(before | (dropped - set(added)))
-    kept = [n for n in added if n not in dropped]
-    report["localized"] = kept
-    report["timings"]["localize_s"] = time.perf_counter() - t0
+        return []
+    added = add_frames(rec, db, localize_frames(rec, db, missing, cfg.sfm_options().min_pose_inliers))
+    off = set(off_path_frames(rec, names, times, cfg)) & set(added)
+    reg = registered_images(rec)
+    for n in off:
+        rec.deregister_frame(reg[n].frame_id)
+    return [n for n in added if n not in off]
+
+
+def _record_localized(report: dict, kept: list[str], event: str) -> None:
+    """``kept`` in ``poses.json``: among the frames localised, no longer among those off the path."""
+    report["localized"] = sorted(set(report.get("localized", [])) | set(kept))
+    report["off_path"] = sorted(set(report.get("off_path", [])) - set(kept))
     if kept:
-        report["events"].append(f"{len(kept)} frame(s) left out at first localised against the model")
+        report["events"].append(event)
+
+
+def localize_in_rounds(rec, db: Path, ws: Workspace, names: list[str], times: list[float], cfg: PosesConfig,
+                       report: dict):
+    """The frames the mappers or the path check left out, localised against the model round by round
+    (:func:`_localized_on_path`): after each round that keeps frames, the points are triangulated again with them
+    (:func:`_triangulated_again`), so that the next round can localise the frames that see only theirs; until a round
+    keeps none. A stretch the mapper posed as a block on the far side of the orbit (left out by the path check)
+    comes back so from both its ends, its frames held by points of their own. Returns the model."""
+    t0 = time.perf_counter()
+    kept: list[str] = []
+    rounds = 0
+    while more := _localized_on_path(rec, db, names, times, cfg):
+        kept += more
+        rounds += 1
+        rec = _triangulated_again(rec, db, ws, cfg, ROUND_BA_ITERATIONS)
+    if kept:
+        log.info("SfM: %d frame(s) left out by mapping localised against the model in %d round(s)", len(kept), rounds)
+    _record_localized(report, kept, f"{len(kept)} frame(s) left out by mapping localised against the model in "
+                                    f"{rounds} round(s), their points triangulated")
+    report["timings"]["localize_rounds_s"] = time.perf_counter() - t0
+    return rec
+
+
+def localize_left_out(rec, ws: Workspace, names: list[str], times: list[float], cfg: PosesConfig, report: dict) -> None:
+    """Frames left out after the calibration (the cube's checks, the path judged again), localised against the
+    calibrated model's points; those whose camera lies on the path of its video neighbours stay, without points of
+    their own (the model's points are final)."""
+    t0 = time.perf_counter()
+    kept = _localized_on_path(rec, ws.root / WORK_DIR / "database.db", names, times, cfg)
+    _record_localized(report, kept, f"{len(kept)} frame(s) left out at first localised against the model")
+    report["timings"]["localize_s"] = time.perf_counter() - t0
 
 
 def _leave_out_cube_misses(rec, cal, cfg: PosesConfig, report: dict) -> None:

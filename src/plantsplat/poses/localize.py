@@ -4,11 +4,12 @@ Frames the mappers could not register, or whose camera the path checks left out,
 many matches with registered frames whose keypoints the model triangulated. Those 2D-3D
 correspondences give the frame's camera by robust absolute pose (LO-RANSAC, then refinement; the
 shared camera's intrinsics held fixed): COLMAP's own registration step, run once per frame against
-the finished model. A localised frame joins the model only when its pose is sure (enough inliers) and
-its camera then lies on the path of its video neighbours; the caller judges the latter.
+the model. A localised frame joins the model only when its pose is sure (as many inliers as the
+mapper asks to register a frame) and its camera then lies on the path of its video neighbours; the
+caller judges the latter.
 
 Usage:
-    poses = localize_frames(rec, db, ["frame_00012.png"])
+    poses = localize_frames(rec, db, ["frame_00012.png"], min_inliers=15)
     poses["frame_00012.png"]  # pycolmap.Rigid3d cam_from_world
 """
 
@@ -18,9 +19,6 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
-
-MIN_INLIERS = 30
-"""A localisation with fewer 2D-3D inliers than this is not trusted (COLMAP's mapper asks as many)."""
 
 
 def _correspondences(d, rec, image_id: int, registered: dict[int, object]) -> tuple[np.ndarray, np.ndarray]:
@@ -43,9 +41,9 @@ def _correspondences(d, rec, image_id: int, registered: dict[int, object]) -> tu
     return kp[keys].reshape(-1, 2), xyz
 
 
-def localize_frames(rec, db: Path, names: list[str], min_inliers: int = MIN_INLIERS) -> dict:
+def localize_frames(rec, db: Path, names: list[str], min_inliers: int) -> dict:
     """Camera poses (``cam_from_world``, pycolmap.Rigid3d) of the frames ``names`` localised against ``rec``'s
-    points; frames that cannot be localised surely are absent."""
+    points with at least ``min_inliers`` 2D-3D inliers; frames that cannot be localised so are absent."""
     cam = rec.cameras[next(iter(rec.cameras))]
     registered = {im.image_id: im for im in rec.images.values() if im.has_pose}
     opts = pycolmap.AbsolutePoseEstimationOptions()

@@ -41,6 +41,10 @@ MAP_THREADS = 1
 matches at random (about one run in six, 2026-11-26); with one it gives the same model every time, as fast."""
 RETRIANGULATED_BA_ITERATIONS = 100
 """Iterations, at most, of the bundle adjustment after :func:`retriangulate`."""
+ROUND_BA_ITERATIONS = 10
+"""Iterations, at most, of the bundle adjustment after :func:`retriangulate` in each round of localising left-out
+frames (:func:`plantsplat.poses.estimate.localize_in_rounds`): the distortion test's and the cube's adjustments follow.
+Replayed on own seed 216's 5 rounds (2026-11-28), 10, 25 and 100 gave the same cameras within 0.01 degree."""
 MATCH_THREADS = 1
 """Threads of SIFT matching and two-view verification. With two, COLMAP's CPU matcher returned different matches for
 one or two of 988 pairs in about one run in five (2026-11-27), enough to move the mapping; one thread gives the same
@@ -424,10 +428,11 @@ def final_ba_options(refine_distortion: bool, num_threads: int, loss_scale_px: f
     return opts
 
 
-def retriangulate(like, poses: dict, db: Path, image_dir: Path, work_dir: Path, opts: SfmConfig):
+def retriangulate(like, poses: dict, db: Path, image_dir: Path, work_dir: Path, opts: SfmConfig,
+                  iterations: int = RETRIANGULATED_BA_ITERATIONS):
     """A model of the frames in ``poses`` (name -> cam_from_world) with the camera of ``like``: every match in
-    ``db`` triangulated, then a bundle adjustment of poses, points and intrinsics with the Cauchy loss of
-    ``opts.ba_loss_px``, as every adjustment after mapping (:func:`final_ba_options`)."""
+    ``db`` triangulated, then a bundle adjustment (at most ``iterations``) of poses, points and intrinsics with the
+    Cauchy loss of ``opts.ba_loss_px``, as every adjustment after mapping (:func:`final_ba_options`)."""
     import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     with pycolmap.Database.open(str(db)) as d:
@@ -447,7 +452,7 @@ def retriangulate(like, poses: dict, db: Path, image_dir: Path, work_dir: Path, 
     o.random_seed = opts.seed
     o.triangulation.random_seed = opts.seed
     pycolmap.set_random_seed(opts.seed)
-    ba = final_ba_options(True, MAP_THREADS, opts.ba_loss_px, RETRIANGULATED_BA_ITERATIONS)
+    ba = final_ba_options(True, MAP_THREADS, opts.ba_loss_px, iterations)
     with colmap_logging(opts.verbose):
         rec = pycolmap.triangulate_points(rec, db, image_dir, work_dir, clear_points=True, options=o,
                                           refine_intrinsics=True)
