@@ -79,23 +79,41 @@ def _predict(c2w: dict, a: str, b: str, ta: float, tb: float, t: float,
     return C, R, float(np.linalg.norm(Cb - Ca)), float(np.degrees(np.linalg.norm(rel)))
 
 
+def _bend(c2w: dict, trio: list[tuple[str, float]], a: tuple[str, float], b: tuple[str, float], t: float
+          ) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Pose at time ``t`` from three frames ``trio`` (``(name, time)``) around it: the camera's centre on the parabola
+    through theirs in time (a path that bends or climbs between two rings, as it does where the camera rises to the
+    next ring), its rotation turned from ``a`` to ``b``, the two of them on either side of ``t``. Returns what
+    :func:`_predict` does."""
+    ts = [tk for _, tk in trio]
+    C = sum(np.prod([(t - tj) / (ti - tj) for j, tj in enumerate(ts) if j != i]) * c2w[n][:3, 3]
+            for i, (n, ti) in enumerate(trio))
+    _, R, spacing, turn = _predict(c2w, a[0], b[0], a[1], b[1], t, None)
+    return C, R, spacing, turn
+
+
 def _path_errors(c2w: dict[str, np.ndarray], names: list[str], times: list[float]) -> dict[str, list[tuple]]:
     """Per registered frame, for each way its video neighbours predict it: ``(centre error, centre step,
-    rotation error in degrees, rotation step in degrees)``; the steps are the motion from the nearer neighbour."""
+    rotation error in degrees, rotation step in degrees)``; the steps are the motion from the nearer neighbour.
+    The ways: between its two neighbours (:func:`_predict`), from the two on either side, and where it has them,
+    through three neighbours around it (:func:`_bend`)."""
     reg = [(n, t) for n, t in zip(names, times) if n in c2w]
     centre = orbit_centre([c2w[n] for n, _ in reg])
     out: dict[str, list[tuple]] = {}
     for k, (n, t) in enumerate(reg):
         options = []
         if 0 < k < len(reg) - 1:
-            options.append((reg[k - 1], reg[k + 1]))
+            options.append((reg[k - 1], reg[k + 1], None))
+            options += [(reg[k - 1], reg[k + 1], [reg[i] for i in trio]) for trio in ((k - 2, k - 1, k + 1),
+                        (k - 1, k + 1, k + 2)) if min(trio) >= 0 and max(trio) < len(reg)]
         if k >= 2:
-            options.append((reg[k - 2], reg[k - 1]))
+            options.append((reg[k - 2], reg[k - 1], None))
         if k + 2 < len(reg):
-            options.append((reg[k + 1], reg[k + 2]))
+            options.append((reg[k + 1], reg[k + 2], None))
         rows = []
-        for (a, ta), (b, tb) in options:
-            C, R, spacing, turn = _predict(c2w, a, b, ta, tb, t, centre)
+        for (a, ta), (b, tb), trio in options:
+            C, R, spacing, turn = (_predict(c2w, a, b, ta, tb, t, centre) if trio is None
+                                   else _bend(c2w, trio, (a, ta), (b, tb), t))
             near = min(abs(t - ta), abs(t - tb)) / max(abs(tb - ta), 1e-9)
             rows.append((float(np.linalg.norm(c2w[n][:3, 3] - C)), spacing * near,
                          _angle_deg(R.T @ c2w[n][:3, :3]), turn * near))
@@ -111,8 +129,9 @@ def path_deviations(c2w: dict[str, np.ndarray], names: list[str], times: list[fl
     ``c2w``: camera-to-world poses of the registered frames; ``names`` in video order with ``times``
     (source frame numbers, or positions). Each frame is predicted from its nearest registered frames
     on either side (interpolation), or from the two nearest on one side (extrapolation), moving along
-    their orbit (:func:`_predict`); the best agreeing prediction counts, so the first frame of a new
-    ring, a step away from the last, is judged by the frames after it. A frame's deviation is the
+    their orbit (:func:`_predict`), or through three around it where the path bends (:func:`_bend`); the
+    best agreeing prediction counts, so the first frame of a new ring, a step away from the last, is
+    judged by the frames after it. A frame's deviation is the
     larger of its centre's distance from the prediction over the step from its nearer neighbour
     (their spacing, pro rata of time) and its rotation's angle from the prediction over that step's
     turn, divided by ``turn_slack``: a hand-held phone (or a scanner's head) turns less evenly than it
