@@ -222,8 +222,8 @@ def test_points_are_triangulated_again_from_every_match(synth_run, tmp_path):
 
 def test_a_stretch_left_out_comes_back_round_by_round(synth_run):
     """Frames left out of the model come back by localisation against it, round by round, the points made again after
-    each (poses.estimate.localize_in_rounds): eight video frames in a row taken out of the stage's model return where
-    the stage had posed them, each held by points of its own, and nothing else moves."""
+    each (poses.estimate.localize_in_rounds): eight video frames in a row taken out of the stage's model come back,
+    each held by points of its own and as near the truth as the stage had them."""
     from plantsplat.poses.estimate import localize_in_rounds
     from plantsplat.poses.interop import registered_images
     from plantsplat.poses.stage import video_times
