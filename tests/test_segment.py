@@ -172,12 +172,12 @@ def test_the_crown_on_a_soil_sfm_found_is_not_pot_but_the_soil_heaped_by_the_wal
     draws above its true height against the wall. A soil of the quick model's own keeps the margin everywhere."""
     from dataclasses import replace
 
-    from plantsplat.segment.object3d import CROWN_SHARE, POT_INSIDE_SHARE, Pot
+    from plantsplat.segment.object3d import CROWN_SHARE, Pot, pot_inside_radius
     from plantsplat.segment.soil import soil_layer
 
     pot = Pot(centre=np.array([25.0, 10.0]), rim_z=12.0, soil_z=9.5, heights=np.array([0.0, 12.0]),
               radii=np.array([6.0, 8.0]), soil_bottom=9.5)
-    crown_edge = CROWN_SHARE * POT_INSIDE_SHARE * 8.0
+    crown_edge = CROWN_SHARE * pot_inside_radius(8.0)
     probe = np.array([[25.0, 10.0, 9.9], [25.0 + 0.9 * crown_edge, 10.0, 9.9],  # the crown, 4 mm above the soil
                       [25.0 + 1.2 * crown_edge, 10.0, 9.9], [25.0 + 5.5, 10.0, 10.2],  # soil heaped outside it
                       [25.0, 10.0, 9.3], [25.0, 10.0, 10.6]])  # under the soil; above the margin

@@ -219,7 +219,7 @@ class Pot:
         feet stand on the soil: what lies there above it is left to the evidence. ``[N]``"""
         if not self.soil_points:
             return np.full(len(d), float(margin))
-        crown = d < CROWN_SHARE * POT_INSIDE_SHARE * float(self.radii[-1])
+        crown = d < CROWN_SHARE * pot_inside_radius(self.radii[-1])
         return np.where(crown, min(self.soil_thickness, float(margin)), float(margin))
 
     def summary(self) -> dict:
@@ -323,11 +323,16 @@ def find_pot(points: np.ndarray, axis_xy: np.ndarray, slab: float = POT_SLAB_CM,
                radii=np.maximum.accumulate(radii), soil_bottom=bottom)
 
 
+def pot_inside_radius(rim_radius: float) -> float:
+    """The radius of a pot's inside (cm), where its soil is looked for: :data:`POT_INSIDE_SHARE` of its rim's."""
+    return POT_INSIDE_SHARE * float(rim_radius)
+
+
 def pot_soil_layer(sfm_points: np.ndarray, centre, rim_radius: float, rim_z: float):
     """The layer of SfM points on the soil of a pot (rim of ``rim_radius`` at ``rim_z`` around ``centre``), looked for in
     its inner disc down to :data:`SOIL_DEPTH_CM` below the rim in :data:`POT_SLAB_CM` slabs
     (:func:`plantsplat.segment.soil.soil_layer`); None where there is none."""
-    return soil_layer(sfm_points, np.asarray(centre, float), POT_INSIDE_SHARE * float(rim_radius), float(rim_z),
+    return soil_layer(sfm_points, np.asarray(centre, float), pot_inside_radius(rim_radius), float(rim_z),
                       slab=POT_SLAB_CM, depth=SOIL_DEPTH_CM)
 
 
@@ -347,18 +352,18 @@ def with_sfm_soil(pot: Pot, sfm_points: np.ndarray) -> Pot:
 
 
 def soil_band_in_pot(points: np.ndarray, centre: np.ndarray, r_rim: float, z_rim: float, slab: float,
-                     depth: float = SOIL_DEPTH_CM, cover: float = 0.5, inner: float = POT_INSIDE_SHARE, rings: int = 8,
+                     depth: float = SOIL_DEPTH_CM, cover: float = 0.5, rings: int = 8,
                      sectors: int = 16,
                      spread: np.ndarray | None = None) -> tuple[float, float]:
     """The soil in a pot as the band of slabs that cover its inside: ``(top, bottom)``. The top is the highest slab
-    below the rim whose Gaussians cover at least ``cover`` of the disc inside the rim (``inner`` of its radius, in
+    below the rim whose Gaussians cover at least ``cover`` of the pot's inside (:func:`pot_inside_radius`, in
     ``rings`` rings of equal area x ``sectors`` directions), the bottom the lowest of the slabs below it that still
     do, without a gap; ``(rim, rim)`` when none does. The crown and the petioles' feet above the soil are near the
     axis and do not cover the disc. A cell is covered when a point of the slab lies in it or, with ``spread``
     (``[N, 2, 2]`` horizontal covariances), when its centre lies within one standard deviation of a point's
     footprint: a quick model draws an even soil with a few wide, flat Gaussians, whose centres alone leave most
     cells empty."""
-    rin = inner * r_rim
+    rin = pot_inside_radius(r_rim)
     d = np.linalg.norm(points[:, :2] - centre, axis=1)
     az = np.arctan2(points[:, 1] - centre[1], points[:, 0] - centre[0])
     cell_xy = _disc_cells(centre, rin, rings, sectors)  # [rings * sectors, 2]

@@ -38,7 +38,7 @@ from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_json
 from plantsplat.log import get_logger
 from plantsplat.ply import read_point_cloud
-from plantsplat.segment.object3d import POT_INSIDE_SHARE, find_pot, orbit_axis, pot_soil_layer
+from plantsplat.segment.object3d import find_pot, orbit_axis, pot_inside_radius, pot_soil_layer
 from plantsplat.train.data import load_scene
 
 log = get_logger(__name__)
@@ -148,7 +148,7 @@ def _soil_of(soil_z: float, bottom: float, rim_z: float, centre, rim_radius, sou
     band's thickness."""
     if soil_z < rim_z:
         return (soil_z + bottom) / 2, source, None, float(soil_z - bottom)
-    disc = (np.asarray(centre, float), POT_INSIDE_SHARE * float(rim_radius))
+    disc = (np.asarray(centre, float), pot_inside_radius(rim_radius))
     return float(soil_z), source + " (soil not seen: at most the rim)", disc, 0.0
 
 
