@@ -277,14 +277,20 @@ def off_path_frames(rec, names: list[str], times: list[float], cfg: PosesConfig)
     return drop
 
 
+def _deregister(rec, names) -> None:
+    """Take the frames ``names`` out of ``rec`` (those it has registered)."""
+    reg = registered_images(rec)
+    for n in names:
+        if n in reg:
+            rec.deregister_frame(reg[n].frame_id)
+
+
 def leave_out_off_path(rec, names: list[str], times: list[float], cfg: PosesConfig, report: dict,
                        drop: list[str] | None = None) -> list[str]:
     """Deregister the frames :func:`off_path_frames` finds (``drop``: already found for this model); returns their
     names."""
-    reg = registered_images(rec)
     drop = off_path_frames(rec, names, times, cfg) if drop is None else drop
-    for n in drop:
-        rec.deregister_frame(reg[n].frame_id)
+    _deregister(rec, drop)
     if drop:
         log.warning("%d frame(s) left out: their cameras leave the path of their video neighbours (%s)", len(drop),
                     shown_names(drop))
@@ -308,10 +314,10 @@ def _localized_on_path(rec, db: Path, names: list[str], times: list[float], cfg:
     if not missing or not rec.num_points3D():
         return []
     added = add_frames(rec, db, localize_frames(rec, db, missing, cfg.sfm_options().min_pose_inliers))
+    if not added:
+        return []
     off = set(off_path_frames(rec, names, times, cfg)) & set(added)
-    reg = registered_images(rec)
-    for n in off:
-        rec.deregister_frame(reg[n].frame_id)
+    _deregister(rec, off)
     return [n for n in added if n not in off]
 
 
@@ -364,10 +370,7 @@ def _leave_out_cube_misses(rec, cal, cfg: PosesConfig, report: dict) -> None:
         if name not in kept:
             worst[name] = min(worst.get(name, np.inf), rms)
     drop = sorted(n for n, e in worst.items() if e > cfg.max_camera_cube_px)
-    reg = registered_images(rec)
-    for n in drop:
-        if n in reg:
-            rec.deregister_frame(reg[n].frame_id)
+    _deregister(rec, drop)
     if drop:
         log.warning("%d frame(s) left out: the cube reprojects far from their own markers (%s)", len(drop),
                     shown_names(drop))
