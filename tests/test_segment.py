@@ -23,6 +23,7 @@ from plantsplat.segment.config import SegmentConfig
 from plantsplat.segment.decision_figure import decision_figure
 from plantsplat.segment.frame import (
     GRABCUT_MODEL_SIZE,
+    add_mixed_outline,
     colour_log_likelihood,
     object_prior,
     refine,
@@ -421,6 +422,35 @@ def test_refine_leaves_the_room_between_petioles_out():
     mask = refine(img, prior, band_px=6, thin_px=unresolved_px((h, w), 120))
     assert between.sum() > 400 and not mask[between].any()
     assert mask[plant > 0].all()
+
+
+def _antialiased_disc(h: int, w: int, plant, room, noise: int, seed: int):
+    """A disc drawn at 8x and averaged down (each pixel's colour mixes plant and room by how much of it is disc): the
+    image ``[h, w, 3]`` uint8 and each pixel's share of disc ``[h, w]``."""
+    big = np.zeros((8 * h, 8 * w), np.uint8)
+    cv2.ellipse(big, (8 * w // 2 + 3, 8 * h // 2 - 5), (8 * 40 + 3, 8 * 55 + 5), 30, 0, 360, 1, -1)
+    share = cv2.resize(big.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)
+    img = share[..., None] * np.array(plant, float) + (1 - share[..., None]) * np.array(room, float)
+    img += np.random.default_rng(seed).integers(-noise, noise + 1, img.shape)
+    return img.clip(0, 255).astype(np.uint8), share
+
+
+def test_mixed_outline_pixels_go_where_most_of_them_is():
+    """A disc drawn with its outline pixels mixing plant and room, and a mask that leaves every mixed pixel out (as
+    GrabCut's cut along the strongest edge does): the pixels touching the mask that are at least half disc are put in
+    (nearly all; a few within the noise of the middle may go either way) and none that is mostly room. Where plant
+    and room differ by less than the contrast needed, nothing is added."""
+    img, share = _antialiased_disc(160, 140, (40, 150, 50), (150, 110, 120), noise=4, seed=7)
+    inner = share > 0.99
+    out = add_mixed_outline(img, inner)
+    ring = (cv2.dilate(inner.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0) & ~inner
+    half = ring & (share >= 0.5)
+    assert half.sum() > 100
+    assert out[half & (share > 0.6)].all() and out[half].mean() > 0.95
+    assert not out[ring & (share < 0.4)].any()
+    assert (out & ~ring).sum() == inner.sum()  # only the ring changes
+    faint, _ = _antialiased_disc(160, 140, (120, 112, 118), (128, 116, 120), noise=2, seed=8)
+    assert (add_mixed_outline(faint, inner) == inner).all()
 
 
 def test_colour_log_likelihood_reads_grabcuts_model_layout():

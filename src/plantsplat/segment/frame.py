@@ -9,7 +9,9 @@ outside, undecided in a band along the outline, and the middle line of parts nar
 sure inside), learns the frame's plant and background colours and cuts along the strongest edges in
 the band. GrabCut's cut prefers short outlines and drops parts a few pixels wide whatever their colour; in the
 prior's parts finer than the quick model can draw (:func:`unresolved_px`) each pixel goes instead where its colour
-is likelier under GrabCut's two colour models.
+is likelier under GrabCut's two colour models. A camera's pixels along an outline each see some plant and some
+room; the cut runs along the strongest edge and leaves the pixels just outside it out, so each is put in when its colour
+says it is at least half plant (:func:`add_mixed_outline`).
 
 Usage:
     plant, cube = object_prior(obj, view)
@@ -36,6 +38,10 @@ GRABCUT_COMPONENTS = 5
 """Gaussians in each of GrabCut's colour models (OpenCV's fixed number)."""
 GRABCUT_MODEL_SIZE = 13 * GRABCUT_COMPONENTS
 """Length of GrabCut's colour model arrays: per Gaussian a weight, a mean (3) and a covariance (9), in that order."""
+MIXED_WINDOW_PX = 9
+"""Side of the window in which the plant's and the room's colours next to an outline pixel are averaged."""
+MIN_MIXED_CONTRAST = 20.0
+"""Below this distance (0-255 levels, RGB) between those two colours a pixel's share of each cannot be told."""
 
 
 def cube_depth(cube, view) -> tuple[np.ndarray, np.ndarray]:
@@ -160,6 +166,7 @@ def refine(rgb: np.ndarray, prior: np.ndarray, band_px: int = 6, thin_px: int = 
     preference for short outlines drops thin petioles and stalks, one to three pixels wide, whatever their colour.
     The same preference fills the prior's gaps narrower than the band (the room seen between petioles, which the cut
     reaches from both sides), so there a pixel the cut put in stays plant only when its colour is likelier plant.
+    Last, the pixels touching the cut from outside that are at least half plant are put in (:func:`add_mixed_outline`).
     ``seed``: of GrabCut's k-means, so that a frame's mask does not depend on the frames refined before it on the same
     thread."""
     fg = prior > 0.5
@@ -190,9 +197,43 @@ def refine(rgb: np.ndarray, prior: np.ndarray, band_px: int = 6, thin_px: int = 
             cut[left_out] = likelier_plant(bgr[left_out], fgd, bgd)
         put_in = cut & (cv2.erode(grown.astype(np.uint8), k) > 0) & (crop == 0)  # in the prior's narrow gaps
         cut[put_in] = likelier_plant(bgr[put_in], fgd, bgd)
+        cut = add_mixed_outline(bgr, cut)
     out = np.zeros_like(fg)
     out[y0:y1, x0:x1] = cut
     return out
+
+
+def add_mixed_outline(image: np.ndarray, mask: np.ndarray, window_px: int = MIXED_WINDOW_PX,
+                      min_contrast: float = MIN_MIXED_CONTRAST) -> np.ndarray:
+    """``mask`` (``[H, W]`` bool) with each pixel touching it from outside added when at least half of it is plant.
+
+    A pixel on an outline mixes the colours of what lies either side of it. Its share of plant is read off the line
+    between the plant's colour next to it (the mask's pixels in a ``window_px`` window) and the room's (the pixels in
+    the window neither in the mask nor touching it): where its colour lies past the middle of that line, towards the
+    plant, it is plant. Where the two colours are nearer than ``min_contrast`` the pixel stays out. ``image``:
+    ``[H, W, 3]`` uint8, in any channel order."""
+    m8 = mask.astype(np.uint8)
+    ring = (cv2.dilate(m8, np.ones((3, 3), np.uint8)) > 0) & ~mask
+    if not ring.any():
+        return mask
+    colour = image.astype(np.float32)
+    plant, n_plant = _window_mean(colour, mask, window_px)
+    room, n_room = _window_mean(colour, ~(ring | mask), window_px)
+    line = plant - room
+    length2 = (line * line).sum(-1)
+    share = ((colour - room) * line).sum(-1) / np.maximum(length2, 1e-6)
+    add = ring & (n_plant > 0) & (n_room > 0) & (length2 > min_contrast ** 2) & (share >= 0.5)
+    return mask | add
+
+
+def _window_mean(colour: np.ndarray, where: np.ndarray, window_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """The mean of ``colour`` ``[H, W, 3]`` over the pixels ``where`` in the ``window_px`` window around each pixel,
+    and how many there are: ``([H, W, 3], [H, W])``."""
+    w = where.astype(np.float32)
+    n = cv2.boxFilter(w, -1, (window_px, window_px), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    total = cv2.boxFilter(colour * w[..., None], -1, (window_px, window_px), normalize=False,
+                          borderType=cv2.BORDER_CONSTANT)
+    return total / np.maximum(n, 1e-6)[..., None], n
 
 
 def likelier_plant(colours: np.ndarray, plant_model: np.ndarray, background_model: np.ndarray) -> np.ndarray:
