@@ -1,4 +1,4 @@
-"""More matches where the mapped model holds a frame weakly: its verified pairs matched again, guided.
+"""More matches where the model holds a frame weakly: its verified pairs matched again, guided.
 
 A frame that sees little the others see (blurred, or mostly plant, whose repeated leaves fail the ratio test)
 enters the model with a few dozen points, most of them made from it and one or two neighbours. Its camera can then
@@ -6,9 +6,10 @@ turn with those points: on one independent render a frame held by 51 points (the
 1.1 degrees about its optical axis, its neighbours 0.3. The pairs it verified know their two-view geometry; matched
 again with each feature compared only with those near its epipolar line under that geometry (COLMAP's guided
 matching), they keep the matches the ratio test dropped for a near-identical leaf elsewhere in the frame. Only the
-weakly held frames' pairs are matched so: guided matching of every pair let wrong matches along the epipolar lines of
-repeated texture into the mapping (another render's model came out with a frame 12 degrees off), and the points made
-again from the mapped cameras are what a frame's camera is refined against.
+weakly held frames' pairs are matched so, in a copy of the database from which the model's points are made the last
+time: guided matching of every pair let wrong matches along the epipolar lines of repeated texture into the mapping
+(another render's model came out with a frame 12 degrees off), and which frames are registered is decided from the
+plain matches (:func:`plantsplat.poses.estimate.register`).
 
 Usage:
     weak = weakly_held(rec, names, 0.5)
