@@ -4,12 +4,10 @@ runs them over a workspace).
 1. Registration needs neither masks nor the cube (:func:`register`): SIFT on whole frames, pairs chosen for orbit
    videos (:mod:`plantsplat.poses.pairs`: video neighbours and retrieval with a vocabulary learned from the
    capture; every pair when that is affordable), COLMAP's incremental mapper; frames it leaves out are matched
-   again against the registered frames near them and mapping continues from the model. The verified pairs of the
-   The kept model's points are then triangulated again from every verified match, with its cameras as they are at the end, and
+   again against the registered frames near them and mapping continues from the model. The kept model's points
+   are then triangulated again from every verified match, with its cameras as they are at the end, and
    bundle-adjusted; frames still left out (by the mappers or the path check of step 2) are localised against it
-   round by round, the points made again after each (:func:`localize_in_rounds`). Last, the verified pairs of the
-   frames the model holds weakly are matched again, guided by their geometry, and the points made again from them
-   (:mod:`plantsplat.poses.guided`). A user's model is imported
+   round by round, the points made again after each (:func:`localize_in_rounds`). A user's model is imported
    instead by :func:`import_model`.
 2. Frames whose camera leaves the path of its video neighbours are left out (:func:`leave_out_off_path`,
    :func:`plantsplat.poses.checks.off_path`).
@@ -38,9 +36,8 @@ from plantsplat.log import get_logger
 from plantsplat.markers import Markers
 from plantsplat.poses.calibrate import calibrate, refine_with_cube, scale_uncertainty
 from plantsplat.poses.checks import face_offsets, facing_away, off_path, off_path_runs
-from plantsplat.poses.config import GUIDED_DATABASE, LOGGED_NAMES, WORK_DIR, PosesConfig
+from plantsplat.poses.config import LOGGED_NAMES, WORK_DIR, PosesConfig
 from plantsplat.poses.consistency import contradicted, contradiction, pair_errors
-from plantsplat.poses.guided import pair_inliers, rematch_guided, verified_pairs_with, weakly_held
 from plantsplat.poses.imports import name_map, rename_images
 from plantsplat.poses.interop import c2w_opencv, read_colmap, read_transforms, registered_images
 from plantsplat.poses.localize import add_frames, localize_frames
@@ -225,31 +222,7 @@ def register(ws: Workspace, names: list[str], times: list[float], cfg: PosesConf
     t0 = time.perf_counter()
     rec = _triangulated_again(rec, db, ws, cfg)
     timings["retriangulate_s"] = time.perf_counter() - t0
-    rec = localize_in_rounds(rec, db, ws, names, times, cfg, report)
-    t0 = time.perf_counter()
-    rec = _weak_frames_guided(rec, db, ws, names, cfg, report)
-    timings["guided_s"] = time.perf_counter() - t0
-    return rec
-
-
-def _weak_frames_guided(rec, db: Path, ws: Workspace, names: list[str], cfg: PosesConfig, report: dict):
-    """``rec`` with its points made again (:func:`_triangulated_again`) from a copy of ``db`` in which the verified pairs
-    of the frames it holds weakly are matched again, guided (:mod:`plantsplat.poses.guided`; ``poses.json``:
-    ``guided``). Which frames are registered is decided before, from ``db``'s own matches; the copy only makes points.
-    ``rec`` as it is when no frame is weakly held."""
-    if cfg.weak_frame_share <= 0:
-        return rec
-    weak = weakly_held(rec, names, cfg.weak_frame_share)
-    pairs = verified_pairs_with(db, weak)
-    if not pairs:
-        return rec
-    guided_db = ws.root / WORK_DIR / GUIDED_DATABASE
-    rematch_guided(db, guided_db, ws.root / WORK_DIR, pairs, cfg.sfm_options())
-    before, after = pair_inliers(db, pairs), pair_inliers(guided_db, pairs)
-    report["guided"] = {"frames": weak, "pairs": len(pairs), "inliers_before": before, "inliers_after": after}
-    log.info("SfM: %d weakly held frame(s): %d of their verified pairs matched again, guided (%d -> %d inliers)",
-             len(weak), len(pairs), before, after)
-    return _triangulated_again(rec, guided_db, ws, cfg)
+    return localize_in_rounds(rec, db, ws, names, times, cfg, report)
 
 
 def _triangulated_again(rec, db: Path, ws: Workspace, cfg: PosesConfig, iterations: int = RETRIANGULATED_BA_ITERATIONS):
