@@ -325,3 +325,64 @@ def test_a_failed_global_mapping_process_says_where_its_log_is(tmp_path):
     proc = sfm.start_global_mapping(db, tmp_path, tmp_path / "global", opts)
     with pytest.raises(PlantsplatError, match=r"global mapping process ended with code .*log\.txt.*num-threads 1"):
         sfm.finish_global_mapping(proc, tmp_path / "global")
+
+
+def test_weakly_held_frames_are_matched_again_guided(synth_run, tmp_path):
+    """The verified pairs of the frames the model holds most weakly are matched again with guided matching, in a copy of the
+    database (poses.guided): the same matches, the same pairs verified, at least as many inliers on each and more in
+    all; no other pair changes, and the database itself is left as it was."""
+    import sqlite3
+
+    import pycolmap
+
+    from plantsplat.poses.guided import pair_inliers, rematch_guided, verified_pairs_with, weakly_held
+
+    _, ws, report = synth_run
+    rec = read_colmap(ws.sparse_dir)
+    names = ws.image_names()
+    counts = {im.name: im.num_points3D for im in rec.images.values() if im.has_pose}
+    weakest = sorted(counts, key=counts.get)[:3]
+    assert weakly_held(rec, names, 0.0) == [] and weakly_held(rec, names, 10.0) == [n for n in names if n in counts]
+    half = weakly_held(rec, names, 0.5)
+    assert all(counts[n] < 0.5 * np.median(list(counts.values())) for n in half)
+    assert report["timings"]["guided_s"] >= 0 and set(report.get("guided", {}).get("frames", [])) <= set(counts)
+    db = tmp_path / "database.db"
+    shutil.copy(ws.root / ".plantsplat" / "colmap" / "database.db", db)
+
+    def rows(path, table):
+        with sqlite3.connect(path) as c:
+            return dict(c.execute(f"SELECT pair_id, data FROM {table}").fetchall())
+
+    pairs = verified_pairs_with(db, weakest)
+    assert len(pairs) >= 3 and all(set(p) & set(weakest) for p in pairs)
+    matches, geometries = rows(db, "matches"), rows(db, "two_view_geometries")
+    guided = tmp_path / "guided.db"
+    rematch_guided(db, guided, tmp_path, pairs, PosesConfig().sfm_options())
+    each, after = ([pair_inliers(d, [p]) for p in pairs] for d in (db, guided))
+    assert rows(db, "matches") == rows(guided, "matches") == matches and rows(db, "two_view_geometries") == geometries
+    assert verified_pairs_with(guided, weakest) == pairs
+    assert all(a >= b for a, b in zip(after, each)) and sum(after) > sum(each), (each, after)
+    with pycolmap.Database.open(str(db)) as d:
+        ids = {im.name: im.image_id for im in d.read_all_images()}
+    ours = {pycolmap.image_pair_to_pair_id(ids[a], ids[b]) for a, b in pairs}
+    changed = {k for k, v in rows(guided, "two_view_geometries").items() if geometries.get(k) != v}
+    assert changed and changed <= ours
+
+
+def test_two_view_points_through_weak_frames_are_dropped(synth_run):
+    """drop_weak_two_view deletes exactly the points seen by two frames, one of them among the weak ones; every other
+    point and every camera stays."""
+    from plantsplat.poses.guided import drop_weak_two_view
+
+    _, ws, _ = synth_run
+    rec = read_colmap(ws.sparse_dir)
+    by_id = {im.image_id: im.name for im in rec.images.values()}
+    weak = sorted(im.name for im in rec.images.values() if im.has_pose)[::7]
+    tracks = {pid: {by_id[e.image_id] for e in p.track.elements} for pid, p in rec.points3D.items()}
+    doomed = {pid for pid, t in tracks.items() if len(t) == 2 and t & set(weak)}
+    cams = {im.name: im.cam_from_world().matrix().copy() for im in rec.images.values() if im.has_pose}
+    assert doomed and len(doomed) < len(tracks)
+    assert drop_weak_two_view(rec, weak) == len(doomed)
+    assert set(rec.points3D) == set(tracks) - doomed
+    assert drop_weak_two_view(rec, weak) == 0 and drop_weak_two_view(rec, []) == 0
+    assert all(np.array_equal(im.cam_from_world().matrix(), cams[im.name]) for im in rec.images.values() if im.has_pose)

@@ -22,6 +22,8 @@ WORK_DIR = ".plantsplat/colmap"
 """The stage's working folder in the workspace (COLMAP database, vocabulary, intermediate models)."""
 POSES_VERSION = 2
 """Version of the ``poses.json`` report."""
+GUIDED_DATABASE = "database_guided.db"
+"""In ``WORK_DIR``: the database whose weakly held frames' pairs were matched again, guided (:mod:`plantsplat.poses.guided`)."""
 LOGGED_NAMES = 10
 """Log messages that list frames name at most this many."""
 
@@ -94,6 +96,10 @@ class PosesConfig:
     missing_pair_neighbours: int = 12
     """A frame missing from the first model is matched again with this many registered cameras nearest to each of
     its registered video neighbours (:func:`plantsplat.poses.pairs.pairs_for_missing`)."""
+    weak_frame_share: float = 0.5
+    """Registered frames holding fewer of the model's points than this share of the median frame's have their
+    verified pairs matched again with guided matching, and the points are made again from them
+    (:mod:`plantsplat.poses.guided`); 0 turns it off."""
     face_band_cm: float = 0.6
     """The cube-face check uses the SfM points within this distance (cm) of a face's plane..."""
     face_margin_cm: float = 0.7

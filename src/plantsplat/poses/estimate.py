@@ -7,8 +7,10 @@ runs them over a workspace).
    again against the registered frames near them and mapping continues from the model. The kept model's points
    are then triangulated again from every verified match, with its cameras as they are at the end, and
    bundle-adjusted; frames still left out (by the mappers or the path check of step 2) are localised against it
-   round by round, the points made again after each (:func:`localize_in_rounds`). A user's model is imported
-   instead by :func:`import_model`.
+   round by round, the points made again after each (:func:`localize_in_rounds`). Last, the verified pairs of the
+   frames the model holds weakly are matched again, guided by their geometry, the points made again from them, and
+   those the weak frames share with one other frame only left out (:mod:`plantsplat.poses.guided`). A user's model
+   is imported instead by :func:`import_model`.
 2. Frames whose camera leaves the path of its video neighbours are left out (:func:`leave_out_off_path`,
    :func:`plantsplat.poses.checks.off_path`).
 3. The cube gives scale, gravity and origin only (:func:`calibrate_model`,
@@ -36,8 +38,9 @@ from plantsplat.log import get_logger
 from plantsplat.markers import Markers
 from plantsplat.poses.calibrate import calibrate, refine_with_cube, scale_uncertainty
 from plantsplat.poses.checks import face_offsets, facing_away, off_path, off_path_runs
-from plantsplat.poses.config import LOGGED_NAMES, WORK_DIR, PosesConfig
+from plantsplat.poses.config import GUIDED_DATABASE, LOGGED_NAMES, WORK_DIR, PosesConfig
 from plantsplat.poses.consistency import contradicted, contradiction, pair_errors
+from plantsplat.poses.guided import drop_weak_two_view, pair_inliers, rematch_guided, verified_pairs_with, weakly_held
 from plantsplat.poses.imports import name_map, rename_images
 from plantsplat.poses.interop import c2w_opencv, read_colmap, read_transforms, registered_images
 from plantsplat.poses.localize import add_frames, localize_frames
@@ -222,7 +225,35 @@ def register(ws: Workspace, names: list[str], times: list[float], cfg: PosesConf
     t0 = time.perf_counter()
     rec = _triangulated_again(rec, db, ws, cfg)
     timings["retriangulate_s"] = time.perf_counter() - t0
-    return localize_in_rounds(rec, db, ws, names, times, cfg, report)
+    rec = localize_in_rounds(rec, db, ws, names, times, cfg, report)
+    t0 = time.perf_counter()
+    rec = _weak_frames_guided(rec, db, ws, names, cfg, report)
+    timings["guided_s"] = time.perf_counter() - t0
+    return rec
+
+
+def _weak_frames_guided(rec, db: Path, ws: Workspace, names: list[str], cfg: PosesConfig, report: dict):
+    """``rec`` with its points made again (:func:`_triangulated_again`) from a copy of ``db`` in which the verified pairs
+    of the frames it holds weakly are matched again, guided (:mod:`plantsplat.poses.guided`; ``poses.json``:
+    ``guided``), less the points the weak frames share with one other frame only (:func:`drop_weak_two_view`). Which
+    frames are registered is decided before, from ``db``'s own matches; the copy only makes points. ``rec`` as it is
+    when no frame is weakly held."""
+    if cfg.weak_frame_share <= 0:
+        return rec
+    weak = weakly_held(rec, names, cfg.weak_frame_share)
+    pairs = verified_pairs_with(db, weak)
+    if not pairs:
+        return rec
+    guided_db = ws.root / WORK_DIR / GUIDED_DATABASE
+    rematch_guided(db, guided_db, ws.root / WORK_DIR, pairs, cfg.sfm_options())
+    before, after = pair_inliers(db, pairs), pair_inliers(guided_db, pairs)
+    rec = _triangulated_again(rec, guided_db, ws, cfg)
+    dropped = drop_weak_two_view(rec, weak)
+    report["guided"] = {"frames": weak, "pairs": len(pairs), "inliers_before": before, "inliers_after": after,
+                        "two_view_points_dropped": dropped}
+    log.info("SfM: %d weakly held frame(s): %d of their verified pairs matched again, guided (%d -> %d inliers; "
+             "%d two-view points through them left out)", len(weak), len(pairs), before, after, dropped)
+    return rec
 
 
 def _triangulated_again(rec, db: Path, ws: Workspace, cfg: PosesConfig, iterations: int = RETRIANGULATED_BA_ITERATIONS):

@@ -81,6 +81,9 @@ class SfmConfig:
     ransac_max_trials: int = 2000
     min_pose_inliers: int = 15
     min_pose_inlier_ratio: float = 0.1
+    guided_matching: bool = False
+    """After a pair verifies, match its features again, each only with those near its epipolar line under the pair's
+    verified geometry (COLMAP's guided matching): more inliers than the ratio test lets through on repeated texture."""
 
 
 @contextlib.contextmanager
@@ -144,6 +147,7 @@ def _matching_options(opts: SfmConfig):
 
     mopts = pycolmap.FeatureMatchingOptions()
     mopts.num_threads = MATCH_THREADS
+    mopts.guided_matching = opts.guided_matching
     verif = pycolmap.TwoViewGeometryOptions()
     verif.ransac.random_seed = opts.seed
     verif.ransac.max_num_trials = opts.ransac_max_trials
@@ -201,7 +205,7 @@ def _wait_workers(db: Path, procs: list[subprocess.Popen], parts: list[Path]) ->
 def _start_worker(db: Path, part: Path, pairs: list[tuple[str, str]], opts: SfmConfig) -> subprocess.Popen:
     """A matching process for ``pairs`` on a copy of ``db`` in the fresh folder ``part`` (its output in ``log.txt``)."""
     _fresh(part)
-    _copy_database(db, part / "database.db")
+    copy_database(db, part / "database.db")
     write_pairs(part / "pairs.txt", pairs)
     here = part.resolve()
     return spawn_worker("plantsplat.poses.match_worker", [str(here / "database.db"), str(here / "pairs.txt"),
@@ -243,7 +247,7 @@ def match_pair_list(db: Path, pair_file: Path, opts: SfmConfig) -> None:
                                    device=pycolmap.Device.cpu)
 
 
-def _copy_database(src: Path, dst: Path) -> None:
+def copy_database(src: Path, dst: Path) -> None:
     """A consistent copy of a COLMAP database (SQLite's backup, whatever its journal holds)."""
     with contextlib.closing(sqlite3.connect(src)) as a, contextlib.closing(sqlite3.connect(dst)) as b:
         a.backup(b)
@@ -334,7 +338,7 @@ def start_global_mapping(db: Path, image_dir: Path, out_dir: Path, opts: SfmConf
     ``db`` taken now, in the fresh folder ``out_dir``; :func:`finish_global_mapping` collects its models. It runs on
     one thread beside the incremental mapper in this process, each on a core of its own."""
     _fresh(out_dir)
-    _copy_database(db, out_dir / "database.db")
+    copy_database(db, out_dir / "database.db")
     here = out_dir.resolve()
     return spawn_worker("plantsplat.poses.map_worker", [str(here / "database.db"), str(Path(image_dir).resolve()),
                                                         str(here), json.dumps(dataclasses.asdict(opts))], here)
