@@ -98,8 +98,8 @@ class PosesConfig:
     its registered video neighbours (:func:`plantsplat.poses.pairs.pairs_for_missing`)."""
     weak_frame_share: float = 0.5
     """Registered frames holding fewer of the model's points than this share of the median frame's have their
-    verified pairs matched again with guided matching, and the points are made again from them
-    (:mod:`plantsplat.poses.guided`); 0 turns it off."""
+    verified pairs matched again with guided matching, the points are made again from them, and the points such a
+    frame shares with one other frame only are left out (:mod:`plantsplat.poses.guided`); 0 turns it off."""
     face_band_cm: float = 0.6
     """The cube-face check uses the SfM points within this distance (cm) of a face's plane..."""
     face_margin_cm: float = 0.7
