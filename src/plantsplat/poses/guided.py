@@ -86,7 +86,8 @@ def rematch_guided(db: Path, guided_db: Path, work_dir: Path, pairs: list[tuple[
 
 def drop_weak_two_view(rec, frames: list[str]) -> int:
     """Deletes from ``rec`` the points seen by two frames only, one of them among ``frames``; returns how many."""
-    weak = {im.image_id for im in rec.images.values() if im.name in set(frames)}
+    names = set(frames)
+    weak = {im.image_id for im in rec.images.values() if im.name in names}
     gone = [pid for pid, p in rec.points3D.items()
             if p.track.length() == 2 and any(e.image_id in weak for e in p.track.elements)]
     for pid in gone:
