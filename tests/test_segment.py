@@ -22,6 +22,7 @@ from plantsplat.segment import stage as segmentation
 from plantsplat.segment.config import SegmentConfig
 from plantsplat.segment.decision_figure import decision_figure
 from plantsplat.segment.frame import (
+    object_mask,
     GRABCUT_MODEL_SIZE,
     add_mixed_outline,
     colour_log_likelihood,
@@ -422,6 +423,31 @@ def test_refine_leaves_the_room_between_petioles_out():
     mask = refine(img, prior, band_px=6, thin_px=unresolved_px((h, w), 120))
     assert between.sum() > 400 and not mask[between].any()
     assert mask[plant > 0].all()
+
+
+def test_the_cube_keeps_its_light_border_on_a_light_table():
+    """A black cube face with a light border 2 px wide standing on a light table, and a leaf before one corner: the cut
+    along the strongest edge takes the border off (as GrabCut did on the foreign renders); the mask keeps the cube's
+    silhouette whole, but not where the leaf covers it, which is cut as plant."""
+    rng, h, w = np.random.default_rng(9), 200, 180
+    img = (np.full((h, w, 3), 205, np.int16) + rng.integers(-6, 6, (h, w, 3))).clip(0, 255).astype(np.uint8)
+    sil = np.zeros((h, w), np.uint8)
+    sil[60:150, 40:140] = 1
+    img[sil > 0] = 212  # the border, nearly the table's colour
+    img[62:148, 42:138] = 20  # the marker
+    leaf = np.zeros((h, w), np.uint8)
+    cv2.ellipse(leaf, (140, 60), (25, 15), 30, 0, 360, 1, -1)
+    img[leaf > 0] = (40, 150, 50)
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    cube = (sil * (1 - leaf)).astype(np.float32)  # the cube's share, less what stands before it
+    plant = leaf.astype(np.float32)
+    cut = refine(img, np.maximum(plant, cube), band_px=6)
+    mask = object_mask(img, plant, cube, band_px=6)
+    border = (sil > 0) & (leaf == 0) & ~(cv2.erode(sil, np.ones((5, 5), np.uint8)) > 0)
+    assert cut[border].mean() < 0.5 and mask[border].all()
+    assert mask_iou(mask, (sil > 0) | (leaf > 0)) > 0.98
+    assert (mask & ~cut)[(leaf > 0) | (sil == 0)].sum() == 0  # only the cube's own pixels are added
+    assert (object_mask(img, plant, cube, band_px=0) == ((sil > 0) | (leaf > 0))).all()
 
 
 def _antialiased_disc(h: int, w: int, plant, room, noise: int, seed: int):

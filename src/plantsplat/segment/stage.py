@@ -51,7 +51,7 @@ from plantsplat.resources import map_on_cores, usable_cores
 from plantsplat.segment.config import SegmentConfig
 from plantsplat.segment.decide import DecideConfig
 from plantsplat.segment.decision_figure import decision_figure
-from plantsplat.segment.frame import distortion_map, object_prior, refine, to_frame, unresolved_px
+from plantsplat.segment.frame import distortion_map, object_mask, object_prior, to_frame, unresolved_px
 from plantsplat.segment.imports import import_masks
 from plantsplat.segment.object3d import object_model
 from plantsplat.segment.preview import contact_sheet
@@ -129,8 +129,9 @@ def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool 
                         pending.append((name, None, None, pool.submit(_frame_mask, ws, name, None, cfg, out_dirs)))
                     continue
                 plant, cube = (to_frame(p, maps) for p in object_prior(obj, view))  # rendered here: numba's threads
-                prior = np.maximum(plant, cube)
-                pending.append((name, cube > 0.5, prior > 0.5, pool.submit(_frame_mask, ws, name, prior, cfg, out_dirs)))
+                prior = np.maximum(plant, cube) > 0.5
+                pending.append((name, cube > 0.5, prior, pool.submit(_frame_mask, ws, name, (plant, cube), cfg,
+                                                                     out_dirs)))
                 while len(pending) > 2 * workers:  # a few frames in flight, not all of them in memory
                     _finish_mask(pending.popleft(), parts, facts)
             while pending:
@@ -144,15 +145,16 @@ def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool 
     return parts, facts, info
 
 
-def _frame_mask(ws: Workspace, name: str, prior: np.ndarray | None, cfg: SegmentConfig,
+def _frame_mask(ws: Workspace, name: str, prior: tuple[np.ndarray, np.ndarray] | None, cfg: SegmentConfig,
                 out_dirs: tuple[Path, Path] | None) -> np.ndarray | None:
-    """Frame ``name``'s mask: the prior's outline refined on the frame (:func:`plantsplat.segment.frame.refine`); None
-    without a prior (a frame with no camera). With ``out_dirs``, the mask and the RGBA image are written there."""
+    """Frame ``name``'s mask from its prior ``(plant, cube)``: the outline refined on the frame, the cube kept
+    (:func:`plantsplat.segment.frame.object_mask`); None without a prior (a frame with no camera). With ``out_dirs``,
+    the mask and the RGBA image are written there."""
     rgb = read_image(ws.images_dir / name) if out_dirs is not None or cfg.refine_band_px > 0 else None
     mask = None
     if prior is not None:
-        mask = prior > 0.5 if cfg.refine_band_px <= 0 else refine(
-            rgb, prior, cfg.refine_band_px, unresolved_px(prior.shape, cfg.scene_resolution), seed=cfg.seed)
+        mask = object_mask(rgb, *prior, cfg.refine_band_px, unresolved_px(prior[0].shape, cfg.scene_resolution),
+                           seed=cfg.seed)
     if out_dirs is not None:
         _write_frame(name, rgb, mask, *out_dirs)
     return mask

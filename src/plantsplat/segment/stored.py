@@ -23,7 +23,7 @@ from plantsplat.cube import CubeSpec
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import atomic_path, read_json
 from plantsplat.segment.config import SegmentConfig
-from plantsplat.segment.frame import object_prior, refine, unresolved_px
+from plantsplat.segment.frame import object_mask, object_prior, unresolved_px
 from plantsplat.segment.object3d import ObjectModel
 from plantsplat.train.checkpoint import load_model
 from plantsplat.train.data import load_scene
@@ -80,8 +80,8 @@ def segment_images(ws: Workspace, images: dict[str, np.ndarray], band_px: int | 
     resolution = scene_resolution(ws)
     out = {}
     for name, rgb in images.items():
-        prior = np.maximum(*object_prior(obj, views[name]))
-        if prior.shape != rgb.shape[:2]:
-            prior = cv2.resize(prior, (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_AREA)
-        out[name] = refine(rgb, prior, band, unresolved_px(rgb.shape, resolution)) if band > 0 else prior > 0.5
+        plant, cube = object_prior(obj, views[name])
+        if plant.shape != rgb.shape[:2]:
+            plant, cube = (cv2.resize(p, (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_AREA) for p in (plant, cube))
+        out[name] = object_mask(rgb, plant, cube, band, unresolved_px(rgb.shape, resolution))
     return out
