@@ -22,10 +22,10 @@ from plantsplat.segment import stage as segmentation
 from plantsplat.segment.config import SegmentConfig
 from plantsplat.segment.decision_figure import decision_figure
 from plantsplat.segment.frame import (
-    object_mask,
     GRABCUT_MODEL_SIZE,
     add_mixed_outline,
     colour_log_likelihood,
+    object_mask,
     object_prior,
     refine,
     thin_ridge,
