@@ -278,6 +278,32 @@ def test_lpips_test_vector():
     assert lpips(net, ref, ref) == pytest.approx(0.0, abs=1e-6)
 
 
+def test_lpips_one_batch_channels_last_matches_image_by_image():
+    """LPIPS runs both images through AlexNet in one channels-last batch; the distances are those of each image run on
+    its own in NCHW with NCHW weights (seeded random weights, odd sizes, two pairs at once)."""
+    import copy
+
+    from plantsplat.train.metrics import LPIPS
+
+    torch.manual_seed(0)
+    net = LPIPS().eval().to(memory_format=torch.channels_last)
+    with torch.no_grad():
+        for lin in net.lins:  # LPIPS's linear heads weigh each channel's difference by a non-negative weight
+            lin.model[1].weight.abs_()
+    ref = copy.deepcopy(net).to(memory_format=torch.contiguous_format)
+    x, y = torch.rand(2, 3, 67, 93) * 2 - 1, torch.rand(2, 3, 67, 93) * 2 - 1
+
+    def by_image(a, b):
+        fa, fb = (ref.net(((t - ref.shift) / ref.scale).contiguous()) for t in (a, b))
+        unit = lambda f: f / (f.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)  # noqa: E731
+        return sum(lin((unit(p) - unit(q)) ** 2).mean(dim=(2, 3)) for p, q, lin in zip(fa, fb, ref.lins))[:, 0]
+
+    with torch.no_grad():
+        got, want = net(x, y), torch.stack([by_image(x[i:i + 1], y[i:i + 1])[0] for i in range(2)])
+    assert got.shape == (2,) and torch.allclose(got, want, rtol=1e-5, atol=1e-7)
+    assert float(want.min()) > 0
+
+
 def test_lpips_missing_weights_is_null(tmp_path, monkeypatch):
     from plantsplat.train.metrics import load_lpips, lpips
 

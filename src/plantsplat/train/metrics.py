@@ -223,16 +223,17 @@ class LPIPS(torch.nn.Module):
         net.eval()
         for p in net.parameters():
             p.requires_grad_(False)
-        return net
+        return net.to(memory_format=torch.channels_last)
 
     def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        fx = self.net((x - self.shift) / self.scale)
-        fy = self.net((y - self.shift) / self.scale)
+        # both images through the trunk in one batch, channels last: on the CPU the convolutions run about a quarter
+        # faster that way than image by image in NCHW (960x540 frames, 2026-11-29), with the same distances
+        z = torch.cat([x, y]).contiguous(memory_format=torch.channels_last)
+        n = x.shape[0]
         total = 0.0
-        for a, b, lin in zip(fx, fy, self.lins):
-            a = a / (a.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
-            b = b / (b.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
-            total = total + lin((a - b) ** 2).mean(dim=(2, 3))  # [B, 1]
+        for f, lin in zip(self.net((z - self.shift) / self.scale), self.lins):
+            f = f / (f.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+            total = total + lin((f[:n] - f[n:]) ** 2).mean(dim=(2, 3))  # [B, 1]
         return total[:, 0]
 
 
