@@ -1,19 +1,19 @@
 """One frame's mask from the capture's 3D object: the plant and cube as the model draws them, refined on the image.
 
-:func:`object_prior` renders, for one camera, how much of each pixel is plant (the plant Gaussians'
-share of the composite, so that whatever stands in front, such as the pot, hides it) and draws the
-calibrated cube exactly (its box projected, less the pixels where a nearer Gaussian covers it).
-Cameras carry errors of a few pixels and the quick model blurs thin parts, so :func:`refine` moves
-the outline onto the image's own edges: OpenCV's GrabCut, started from the prior (sure inside, sure
-outside, undecided in a band along the outline, and the middle line of parts narrower than the band
-sure inside), learns the frame's plant and background colours from the prior's labels and cuts once along the
-strongest edges in the band (:data:`GRABCUT_ITERATIONS`). GrabCut's cut prefers short outlines and drops parts a few pixels wide whatever their colour; in the
-prior's parts finer than the quick model can draw (:func:`unresolved_px`) each pixel goes instead where its colour
-is likelier under GrabCut's two colour models. A camera's pixels along an outline each see some plant and some
-room; the cut runs along the strongest edge and leaves the pixels just outside it out, so each is put in when its colour
-says it is at least half plant (:func:`add_mixed_outline`). The cube's silhouette is exact where the cut is not: its
-faces' light border meets a light table with little contrast, and the cut takes it off, so :func:`object_mask` keeps
-the cube as drawn, whatever the cut says.
+:func:`object_prior` renders, for one camera, how much of each pixel is plant (the plant Gaussians' share of the
+composite, so that whatever stands in front, such as the pot, hides it) and draws the calibrated cube exactly (its box
+projected, less the pixels where a nearer Gaussian covers it). Cameras carry errors of a few pixels and the quick
+model blurs thin parts, so :func:`refine` moves the outline onto the image's own edges: OpenCV's GrabCut, started from
+the prior (sure inside, sure outside, undecided in a band along the outline, and the middle line of parts narrower
+than the band sure inside), learns the frame's plant and background colours from the prior's labels and cuts once
+along the strongest edges in the band (:data:`GRABCUT_ITERATIONS`). GrabCut's cut prefers short outlines and drops
+parts a few pixels wide whatever their colour; in the prior's parts finer than the quick model can draw
+(:func:`unresolved_px`) each pixel goes instead where its colour is likelier under GrabCut's two colour models. A
+camera's pixels along an outline each see some plant and some room; the cut runs along the strongest edge and leaves
+the pixels just outside it out, so each is put in when its colour says it is at least half plant
+(:func:`add_mixed_outline`). The cube's silhouette is exact where the cut is not: its faces' light border meets a
+light table with little contrast, and the cut takes it off, so :func:`object_mask` keeps the cube as drawn, whatever
+the cut says.
 
 Usage:
     plant, cube = object_prior(obj, view)
