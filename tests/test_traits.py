@@ -633,6 +633,22 @@ def test_a_result_failing_its_checks_is_written_marked_and_exits_4(tmp_path, cap
     assert "FAILED" in capsys.readouterr().err
 
 
+def test_the_figure_shows_the_verdict_of_the_checks(tmp_path, monkeypatch):
+    """traits.png printed the measurement's own `ok` above a result its checks had marked failed."""
+    import matplotlib.figure
+
+    from plantsplat.cli import main
+
+    titles = []
+    real = matplotlib.figure.Figure.suptitle
+    monkeypatch.setattr(matplotlib.figure.Figure, "suptitle", lambda fig, t, **kw: titles.append(t) or real(fig, t, **kw))
+    pts, cols, _ = make_plant_scene(seed=4, floaters=False, stretch=1.5)
+    ws = _measured_workspace(tmp_path, pts, cols, [0.9] * 5 + [0.3] * 15)
+    assert main(["traits", str(ws)]) == 4
+    assert json.loads((ws / "traits.json").read_text())["quality"] == "failed"
+    assert len(titles) == 1 and "quality: failed" in titles[0]
+
+
 def test_the_height_is_judged_by_bounds_found_apart_from_it(tmp_path):
     """Issue 41. Soil seen in the pot: bounds within 5 %, ok. Soil hidden under the leaves (the rim stands for it):
     the plant's lowest point in the pot and the ground bound it; the height is measured from that point, the truth

@@ -53,8 +53,10 @@ def _subsample(n: int, k: int, seed: int = 0) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(n, k, replace=False))
 
 
-def traits_figure(result, path: str | Path, title: str = "", max_points: int = 30000) -> None:
-    """Draw ``result`` (a :class:`~plantsplat.traits.result.TraitResult` with plant points) to a PNG.
+def traits_figure(result, path: str | Path, title: str = "", max_points: int = 30000, quality: str | None = None
+                  ) -> None:
+    """Draw ``result`` (a :class:`~plantsplat.traits.result.TraitResult` with plant points) to a PNG; ``quality``:
+    the verdict to print (default the measurement's own, before the stage's checks).
 
     Left: top view (x, y) of the plant's points in their colours, the cube's footprint, the PCA
     centre and axes and the width1/width2 extents as a rectangle. Right: side view (the points
@@ -123,7 +125,7 @@ def traits_figure(result, path: str | Path, title: str = "", max_points: int = 3
     ax2.legend(loc="upper left", fontsize=LEGEND_FONT_SIZE)
     ax2.grid(alpha=GRID_ALPHA)
     lines = [
-        f"{title}  quality: {result.quality}  scale: {result.scale.get('source')}",
+        f"{title}  quality: {quality or result.quality}  scale: {result.scale.get('source')}",
         "  ".join(
             f"{k}={t[k]:.1f}" if isinstance(t.get(k), float) else f"{k}={t.get(k)}"
             for k in ("canopy_volume_cm3", "canopy_area_cm2", "fruit_count")

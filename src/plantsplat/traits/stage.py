@@ -150,7 +150,7 @@ def run(ws, cfg=None, *, points_path: str | Path | None = None, calibrated: bool
     write_json_atomic(ws.traits_json, out)
     write_text_atomic(ws.traits_csv, traits_csv_text(out, ws.root.name))
     if figure and res.plant_points is not None:
-        traits_figure(res, ws.traits_png, title=ws.root.name)
+        traits_figure(res, ws.traits_png, title=ws.root.name, quality=out["quality"])
     if out["quality"] == "failed":
         log.error("traits: FAILED: %s (details in %s)", "; ".join(out["quality_reasons"][:3]), ws.traits_json)
     for r in out["quality_reasons"] if out["quality"] != "failed" else ():
