@@ -25,6 +25,7 @@ from plantsplat.segment.frame import (
     GRABCUT_MODEL_SIZE,
     add_mixed_outline,
     colour_log_likelihood,
+    cube_box_distance,
     object_mask,
     object_prior,
     refine,
@@ -304,6 +305,22 @@ def test_cube_prior_is_the_box_less_what_stands_in_front():
     assert hidden.sum() < 0.75 * cube.sum()
     ys = np.nonzero(cube > 0.5)[0]
     assert hidden[ys.max() - 2].max() < 0.5 and hidden[ys.min() + 2].max() > 0.5  # bottom hidden, top seen
+
+
+def test_the_quick_models_own_drawing_of_a_face_does_not_hide_the_cube():
+    # a camera that sees the cube's +y face at a slant (66 degrees from its normal)
+    view = orbit_views(axis=(0.0, 0.0), radius=45.0)[1]
+    obj = ObjectModel(params=gaussians(np.zeros((0, 3))), plant=np.zeros(0, bool), cube=CubeSpec(),
+                      axis=np.array([0.0, 0.0, 5.0]), up=np.array([0, 0, 1.0]), info={"reach": 25.0})
+    _, cube = object_prior(obj, view)
+    # the face as a quick model draws it: opaque Gaussians 4 mm off its plane, a centimetre nearer along the rays
+    g = np.array([[x, 5.4, z] for x in np.linspace(-4.5, 4.5, 30) for z in np.linspace(0.5, 9.5, 30)])
+    obj.params = gaussians(g, size=0.2, opacity=0.95)
+    obj.plant = np.zeros(len(g), bool)
+    _, drawn = object_prior(obj, view)
+    assert (drawn > 0.5).sum() == (cube > 0.5).sum() > 500
+    assert cube_box_distance(np.array([[0.0, 5.4, 5.0], [8.0, 9.0, 10.0], [1.0, 1.0, 1.0]]), CubeSpec()) == \
+        pytest.approx([0.4, 5.0, 0.0])
 
 
 def test_footprints_hold_every_pixel_a_gaussian_draws():
