@@ -206,7 +206,7 @@ def test_all_culled_gives_empty_image_and_finite_zero_gradients():
     V, _ = _camera(8, 8)
     params[0] = (torch.tensor([0.0, 0.0, -2.0]) + 0.01 * torch.randn(20, 3) - V[:3, 3]) @ V[:3, :3]  # behind
     out, grads, _ = _run(params, 30, 20, "cpu")
-    assert float(out.alpha.abs().sum()) == 0.0 and not bool(out.visible.any())
+    assert float(out.alpha.detach().abs().sum()) == 0.0 and not bool(out.visible.any())
     for g in grads:
         assert g is not None and torch.isfinite(g).all() and float(g.abs().sum()) == 0.0
 
