@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from plantsplat.cube import CubeSpec
+from plantsplat.cube import CubeSpec, cube_box_distance
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_image, read_json
 from plantsplat.pipeline import segment_stage
@@ -25,7 +25,6 @@ from plantsplat.segment.frame import (
     GRABCUT_MODEL_SIZE,
     add_mixed_outline,
     colour_log_likelihood,
-    cube_box_distance,
     object_mask,
     object_prior,
     refine,
@@ -319,7 +318,7 @@ def test_the_quick_models_own_drawing_of_a_face_does_not_hide_the_cube():
     obj.plant = np.zeros(len(g), bool)
     _, drawn = object_prior(obj, view)
     assert (drawn > 0.5).sum() == (cube > 0.5).sum() > 500
-    assert cube_box_distance(np.array([[0.0, 5.4, 5.0], [8.0, 9.0, 10.0], [1.0, 1.0, 1.0]]), CubeSpec()) == \
+    assert cube_box_distance(np.array([[0.0, 5.4, 5.0], [8.0, 9.0, 10.0], [1.0, 1.0, 1.0]]), CubeSpec().size) == \
         pytest.approx([0.4, 5.0, 0.0])
 
 

@@ -118,6 +118,23 @@ def in_cube_box(points: np.ndarray, size: float, margin: float) -> np.ndarray:
             & (points[:, 2] > -margin) & (points[:, 2] < size + margin))
 
 
+def cube_box_distance(points: np.ndarray, size: float) -> np.ndarray:
+    """``[N]`` distance of points ``[N, 3]`` (cube frame) from the box of a cube of edge ``size`` standing on the
+    ground at the origin, 0 inside it.
+
+    The segment stage judges by it whether a Gaussian stands before the cube or draws its face: on a close-up of
+    foreign render 103 (2026-11-29), 20 Gaussians 0.1-0.5 cm off a face seen at a slant lay 0.5-1.4 cm nearer than the
+    face along the rays, and judged by depth alone they hid 4,064 of the cube's 42,362 pixels.
+
+    Example:
+        >>> cube_box_distance(np.array([[0.0, 5.4, 5.0], [8.0, 9.0, 10.0], [1.0, 1.0, 1.0]]), 10.0).round(6).tolist()
+        [0.4, 5.0, 0.0]
+    """
+    out = np.maximum(np.abs(points[:, :2]) - size / 2, 0.0)
+    above = np.maximum(np.maximum(points[:, 2] - size, -points[:, 2]), 0.0)
+    return np.sqrt((out ** 2).sum(axis=1) + above ** 2)
+
+
 def cube_pose(
     detections: dict[int, np.ndarray],
     K: np.ndarray,

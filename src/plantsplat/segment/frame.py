@@ -30,6 +30,7 @@ import torch
 from scipy.special import logsumexp
 from scipy.stats import multivariate_normal
 
+from plantsplat.cube import cube_box_distance, in_cube_box
 from plantsplat.segment.object3d import ObjectModel, camera_points, footprints, overlapping, render_values, union_box
 
 SUBPIXEL_BITS = 4
@@ -38,8 +39,9 @@ NEAR_REACH = 1.2
 """Gaussians nearer a camera than the object's axis less this many times its reach are floaters of the quick model."""
 CUBE_SURFACE_CM = 0.5
 """Gaussians within this distance (cm) of the cube's box are the quick model's drawing of the cube's own faces: only
-those farther out (the pot, a leaf), and this much nearer the camera than the face, hide the exact cube
-(:func:`cube_box_distance`)."""
+those farther out (the pot, a leaf), and this much nearer the camera than the face, hide the exact cube. Seen at a
+slant, a face drawn a few millimetres off its plane lies a centimetre or more nearer than the face along the rays
+(:func:`plantsplat.cube.cube_box_distance`)."""
 GRABCUT_COMPONENTS = 5
 """Gaussians in each of GrabCut's colour models (OpenCV's fixed number)."""
 GRABCUT_MODEL_SIZE = 13 * GRABCUT_COMPONENTS
@@ -82,19 +84,6 @@ def cube_depth(cube, view) -> tuple[np.ndarray, np.ndarray]:
     return np.isfinite(depth), depth
 
 
-def cube_box_distance(points: np.ndarray, cube) -> np.ndarray:
-    """Distance (cm) of each of ``points`` ``[N, 3]`` (cube frame) from the cube's box, 0 inside it. ``[N]``
-
-    The quick model draws the cube's faces a few millimetres off their plane, and a camera that sees a face at a slant
-    finds such a Gaussian a centimetre or more nearer than the face along its ray: on a close-up of foreign render 103
-    (2026-11-29), 20 Gaussians 0.1-0.5 cm in front of a face veiled 4,064 of the cube's 42,362 pixels, which the cut
-    then took out of the mask. Whether something stands before the cube is judged by its distance from the box."""
-    h = cube.size / 2
-    out = np.maximum(np.abs(points[:, :2]) - h, 0.0)
-    above = np.maximum(np.maximum(points[:, 2] - cube.size, -points[:, 2]), 0.0)
-    return np.sqrt((out ** 2).sum(axis=1) + above ** 2)
-
-
 def object_prior(obj: ObjectModel, view) -> tuple[np.ndarray, np.ndarray]:
     """How much of each pixel of ``view`` is plant, and is cube, in [0, 1]: ``(plant, cube)``, ``[H, W]`` float32.
 
@@ -114,8 +103,7 @@ def object_prior(obj: ObjectModel, view) -> tuple[np.ndarray, np.ndarray]:
     keep = z > axis_depth - NEAR_REACH * obj.info["reach"]
     cube = np.zeros((view.height, view.width), np.float32)
     if obj.cube is not None:  # Gaussians of the cube give way to the exact cube
-        h = obj.cube.size / 2
-        keep &= ~((np.abs(mu[:, 0]) < h) & (np.abs(mu[:, 1]) < h) & (mu[:, 2] > 0) & (mu[:, 2] < obj.cube.size))
+        keep &= ~in_cube_box(mu, obj.cube.size, 0.0)
     boxes = footprints(p, view)
     near_plant = keep & overlapping(boxes, union_box(boxes[keep & obj.plant]))
     img, _ = render_values(p, plant, view, keep=torch.from_numpy(near_plant))
@@ -127,7 +115,8 @@ def object_prior(obj: ObjectModel, view) -> tuple[np.ndarray, np.ndarray]:
             inside = (uv[:, 0] >= 0) & (uv[:, 0] < view.width) & (uv[:, 1] >= 0) & (uv[:, 1] < view.height)
             reference = np.where(inside & sil[v, u], depth[v, u], depth[sil].min())  # beside it: its nearest point
             ys, xs = np.nonzero(sil)
-            front = (keep & (z < reference - CUBE_SURFACE_CM) & (cube_box_distance(mu, obj.cube) > CUBE_SURFACE_CM)
+            off_box = cube_box_distance(mu, obj.cube.size) > CUBE_SURFACE_CM
+            front = (keep & (z < reference - CUBE_SURFACE_CM) & off_box
                      & overlapping(boxes, np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1])))
             _, cover = render_values(p, torch.ones(n, 3), view, keep=torch.from_numpy(front))  # Gaussians before it
             cube = (sil * (1.0 - cover)).astype(np.float32)
