@@ -322,6 +322,24 @@ def test_the_quick_models_own_drawing_of_a_face_does_not_hide_the_cube():
         pytest.approx([0.4, 5.0, 0.0])
 
 
+def test_the_table_below_the_ground_does_not_hide_the_cube():
+    # a camera at the cube's height sees the table before the cube at a slant; the quick model draws it as wide,
+    # opaque Gaussians 3 mm under the ground, nearer the camera than the cube, whose footprints reach over its lower edge
+    view = orbit_views(axis=(0.0, 0.0), radius=45.0)[0]
+    obj = ObjectModel(params=gaussians(np.zeros((0, 3))), plant=np.zeros(0, bool), cube=CubeSpec(),
+                      axis=np.array([0.0, 0.0, 5.0]), up=np.array([0, 0, 1.0]), info={"reach": 25.0})
+    _, cube = object_prior(obj, view)
+    eye = -view.viewmat[:3, :3].T @ view.viewmat[:3, 3]
+    toward = eye[:2] / np.linalg.norm(eye[:2])
+    side = np.array([-toward[1], toward[0]])
+    g = np.array([(6.0 + d) * toward + s * side for d in np.linspace(0.0, 8.0, 9) for s in np.linspace(-7, 7, 15)])
+    g = np.column_stack([g, np.full(len(g), -0.3)])
+    obj.params = gaussians(g, size=1.0, opacity=0.95)
+    obj.plant = np.zeros(len(g), bool)
+    _, drawn = object_prior(obj, view)
+    assert (drawn > 0.5).sum() == (cube > 0.5).sum() > 1000
+
+
 def test_footprints_hold_every_pixel_a_gaussian_draws():
     """Drawn with only the Gaussians whose footprint reaches a box, the box's pixels are what all of them draw, and
     outside the plant Gaussians' footprints nothing is plant (what object_prior relies on to skip the room)."""

@@ -115,7 +115,9 @@ def object_prior(obj: ObjectModel, view) -> tuple[np.ndarray, np.ndarray]:
             inside = (uv[:, 0] >= 0) & (uv[:, 0] < view.width) & (uv[:, 1] >= 0) & (uv[:, 1] < view.height)
             reference = np.where(inside & sil[v, u], depth[v, u], depth[sil].min())  # beside it: its nearest point
             ys, xs = np.nonzero(sil)
-            off_box = cube_box_distance(mu, obj.cube.size) > CUBE_SURFACE_CM
+            # what stands before the cube: off its box (not its own faces) and above the ground (a segment from a
+            # camera above the ground to the cube never dips below it; a Gaussian centred there draws the table)
+            off_box = (cube_box_distance(mu, obj.cube.size) > CUBE_SURFACE_CM) & (mu[:, 2] >= 0.0)
             front = (keep & (z < reference - CUBE_SURFACE_CM) & off_box
                      & overlapping(boxes, np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1])))
             _, cover = render_values(p, torch.ones(n, 3), view, keep=torch.from_numpy(front))  # Gaussians before it
