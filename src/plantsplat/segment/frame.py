@@ -117,8 +117,8 @@ def object_prior(obj: ObjectModel, view) -> tuple[np.ndarray, np.ndarray]:
             ys, xs = np.nonzero(sil)
             # what stands before the cube: off its box (not its own faces) and above the ground (a segment from a
             # camera above the ground to the cube never dips below it; a Gaussian centred there draws the table)
-            off_box = (cube_box_distance(mu, obj.cube.size) > CUBE_SURFACE_CM) & (mu[:, 2] >= 0.0)
-            front = (keep & (z < reference - CUBE_SURFACE_CM) & off_box
+            may_hide = (cube_box_distance(mu, obj.cube.size) > CUBE_SURFACE_CM) & (mu[:, 2] >= 0.0)
+            front = (keep & (z < reference - CUBE_SURFACE_CM) & may_hide
                      & overlapping(boxes, np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1])))
             _, cover = render_values(p, torch.ones(n, 3), view, keep=torch.from_numpy(front))  # Gaussians before it
             cube = (sil * (1.0 - cover)).astype(np.float32)
