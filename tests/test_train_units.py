@@ -161,14 +161,14 @@ def test_fused_loss_composites_a_cropped_target_like_torch(h, w):
         else:
             loss, mse = trainer_loss.photometric_loss(c, al, bg, (img * ga + (1 - ga) * bg).contiguous(), 0.2)
         loss.backward()
-        results.append((float(loss), float(mse), c.grad, al.grad))
+        results.append((float(loss.detach()), float(mse.detach()), c.grad, al.grad))
     (l1, m1, c1, a1), (l2, m2, c2, a2) = results
     assert abs(l1 - l2) < 1e-6 and abs(m1 - m2) < 1e-6
     assert torch.allclose(c1, c2, atol=1e-7) and torch.allclose(a1, a2, atol=1e-7)
     # the PyTorch fallback (a target that needs a gradient) composites the same way
     img_req = img.clone().requires_grad_(True)
     loss_t, _ = trainer_loss.photometric_loss(color, alpha, bg, img_req, 0.2, ga)
-    assert abs(float(loss_t) - l1) < 1e-5
+    assert abs(float(loss_t.detach()) - l1) < 1e-5
 
 
 @pytest.mark.parametrize("case", ["corner", "two_islands", "edge_columns", "empty", "one_pixel"])
@@ -215,7 +215,7 @@ def test_fused_loss_skips_windows_where_render_and_target_agree(case):
         al = (alpha if fused else alpha.double()).clone().requires_grad_(True)
         loss, mse = trainer_loss.photometric_loss(c, al, bg, frame, 0.2, ga) if fused else torch_loss(c, al)
         (3.0 * loss).backward()
-        out.append((float(loss), float(mse), c.grad.double(), al.grad.double()))
+        out.append((float(loss.detach()), float(mse.detach()), c.grad.double(), al.grad.double()))
     (lf, mf, cf, af), (lr, mr, cr, ar) = out
     assert abs(lf - lr) < 1e-6 and abs(mf - mr) < 1e-6
     x, y, (_, rng), _ = S._run_fwd(color, alpha[..., 0].numpy().copy(), bg.numpy(), frame, True, ga)
