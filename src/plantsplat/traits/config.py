@@ -76,6 +76,9 @@ class TraitsConfig:
     """Minimum points of one fruit."""
     fruit_min_size_cm: float = 0.8
     """Minimum extent of one fruit (cm)."""
+    fruit_views: bool = True
+    """Count as one fruit the pieces of red surface that the workspace's frames show as one red region (a fruit
+    seen past petioles falls into pieces in the model). Off: each piece is counted."""
     extent_sigma: float = 2.0
     """0: measure the Gaussians' centres (the paper). > 0: also use the 6 ends of each Gaussian's principal
     axes at this many standard deviations (read from export/splat.ply), so that the Gaussians' extents count:

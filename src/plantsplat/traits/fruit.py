@@ -10,6 +10,8 @@ Touching fruit merge into one cluster and are counted once.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import cv2
 import numpy as np
 import open3d as o3d
@@ -68,25 +70,28 @@ def fruit_sized(points: np.ndarray, max_cm: float) -> bool:
     return bool(ext[1] <= max_cm and ext[0] <= 2.0 * max_cm)
 
 
-def count_fruit(points_cm: np.ndarray, colors: np.ndarray, s: TraitsConfig, core_points: int = 5
-                ) -> tuple[int, np.ndarray]:
-    """Count fruit among the plant's points: ``(count, centres [F, 3])``. The fruit-coloured points are grouped by
-    DBSCAN (radius ``s.fruit_eps_cm``, ``core_points`` neighbours make a core point)."""
+def fruit_pieces(points_cm: np.ndarray, colors: np.ndarray, s: TraitsConfig, core_points: int = 5) -> list[np.ndarray]:
+    """The fruit-coloured points grouped by DBSCAN (radius ``s.fruit_eps_cm``, ``core_points`` neighbours make a
+    core point): each group ``[N, 3]`` of at least ``s.fruit_min_points`` points and ``s.fruit_min_size_cm`` extent."""
     m = fruit_mask(colors, s)
     if m.sum() < s.fruit_min_points:
-        return 0, np.zeros((0, 3))
+        return []
     fp = points_cm[m]
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(fp))
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         lab = np.asarray(pc.cluster_dbscan(eps=s.fruit_eps_cm, min_points=core_points), dtype=np.int64)
-    centres = []
-    for i in range(lab.max() + 1):
-        q = fp[lab == i]
-        if len(q) < s.fruit_min_points:
-            continue
-        if np.max(q.max(0) - q.min(0)) < s.fruit_min_size_cm:
-            continue
-        centres.append(q.mean(0))
+    pieces = [fp[lab == i] for i in range(lab.max() + 1)]
+    return [q for q in pieces if len(q) >= s.fruit_min_points and np.max(q.max(0) - q.min(0)) >= s.fruit_min_size_cm]
+
+
+def count_fruit(points_cm: np.ndarray, colors: np.ndarray, s: TraitsConfig, core_points: int = 5,
+                same_fruit: Callable[[list[np.ndarray]], list[int]] | None = None) -> tuple[int, np.ndarray]:
+    """Count fruit among the plant's points: ``(count, centres [F, 3])``. The pieces of :func:`fruit_pieces` are
+    fruit; ``same_fruit`` (pieces -> group of each) may join pieces of one fruit
+    (:func:`plantsplat.traits.fruit_views.judge_by_views`)."""
+    pieces = fruit_pieces(points_cm, colors, s, core_points)
+    groups = same_fruit(pieces) if same_fruit is not None and len(pieces) > 1 else list(range(len(pieces)))
+    centres = [np.concatenate([q for q, g in zip(pieces, groups) if g == k]).mean(0) for k in dict.fromkeys(groups)]
     return len(centres), np.array(centres).reshape(-1, 3)
 
 

@@ -34,6 +34,7 @@ Example:
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 
 import numpy as np
@@ -266,13 +267,13 @@ def _soil_under(P: np.ndarray, soil_z: float | None, disc: tuple | None, notes: 
     return low, spread
 
 
-def _plant_traits(P, P_centres, C_centres, soil, s: TraitsConfig, notes: list[str]):
+def _plant_traits(P, P_centres, C_centres, soil, s: TraitsConfig, notes: list[str], same_fruit=None):
     traits: dict = traitdefs.geometric_traits(P, soil_z=soil)
     rob = traitdefs.geometric_traits(P, trim=s.trim, soil_z=soil)
     robust = {k: rob[k] for k in ROBUST_KEYS}
     fruit_centres = None
     if C_centres is not None:
-        traits["fruit_count"], fruit_centres = count_fruit(P_centres, C_centres, s)
+        traits["fruit_count"], fruit_centres = count_fruit(P_centres, C_centres, s, same_fruit=same_fruit)
     else:
         traits["fruit_count"] = None
         notes.append("no colours in the cloud: fruit not counted")
@@ -292,6 +293,7 @@ def measure_traits(
     centre_mask: np.ndarray | None = None,
     soil_z: float | None = None,
     soil_disc: tuple | None = None,
+    fruit_judge: Callable[[list[np.ndarray], np.ndarray], list[int]] | None = None,
 ) -> TraitResult:
     """Measure plant traits from a point cloud of a plant and the calibration cube.
 
@@ -315,6 +317,9 @@ def measure_traits(
             the plant's z extent).
         soil_disc: ``(centre xy, radius)`` of the pot's inside when ``soil_z`` is only an upper bound (the
             rim): the soil is then taken no higher than the plant's lowest point over that disc.
+        fruit_judge: ``(pieces [N_i, 3] in cm, T [4, 4] from the cloud's frame to cm) -> group of each piece``: which
+            pieces of fruit-coloured points are one fruit (:func:`plantsplat.traits.fruit_views.judge_by_views`);
+            None: every piece is a fruit.
 
     Returns:
         A :class:`TraitResult`; ``quality`` is 'failed' (and every trait None) when the traits cannot
@@ -411,8 +416,10 @@ def measure_traits(
         reasons.append(f"plant points reach {P[:, 2].min():.1f} cm below the ground plane: check the vertical")
 
     soil, spread = _soil_under(pts_cm[plant_mask & is_centre], soil_z, soil_disc, notes) if calibrated else (None, None)
+    same_fruit = None if fruit_judge is None else (lambda pieces: fruit_judge(pieces, T))
     traits, robust, fruit_centres = _plant_traits(P, pts_cm[plant_mask & is_centre],
-                                                  None if C is None else cols[plant_mask & is_centre], soil, s, notes)
+                                                  None if C is None else cols[plant_mask & is_centre], soil, s, notes,
+                                                  same_fruit)
     timings["plant_and_traits"] = time.perf_counter() - t2
     timings["total"] = time.perf_counter() - t0
     cube_pts = None if cube_label is None else pts_cm[labels == cube_label]

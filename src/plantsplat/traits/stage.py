@@ -30,9 +30,11 @@ from plantsplat.log import get_logger
 from plantsplat.markers import recorded_cube
 from plantsplat.ply import is_splat, read_point_cloud, read_splat_extent_cloud
 from plantsplat.segment.object3d import POT_SLAB_CM
+from plantsplat.train.data import load_scene
 from plantsplat.traits.checks import result_checks, stage_checks, workspace_soil
 from plantsplat.traits.config import ROBUST_KEYS, MeasureConfig, TraitsConfig, cube_edge_cm
 from plantsplat.traits.figures import traits_figure
+from plantsplat.traits.fruit_views import judge_by_views
 from plantsplat.traits.height import height_bounds, soil_interval
 from plantsplat.traits.measure import measure_traits
 from plantsplat.traits.result import TraitResult
@@ -133,10 +135,16 @@ def run(ws, cfg=None, *, points_path: str | Path | None = None, calibrated: bool
     cams = camera_centres(ws)
     soil_z, soil_source, soil_disc, soil_band = workspace_soil(ws, calibrated)
     cube = recorded_cube(ws.markers_json)  # the cube the poses stage measured with
+    fruit_report: dict = {}
+    own = not points_path  # the frames see the workspace's own model, not a cloud given from elsewhere
+    judge = judge_by_views(lambda: fruit_views(ws), s, fruit_report) if s.fruit_views and own else None
     res = measure_traits(data["xyz"], data["rgb"], calibrated=calibrated, opacity=data["opacity"],
                          scales=data["scales"], camera_centres=None if calibrated else cams, settings=s,
-                         centre_mask=data.get("centre"), soil_z=soil_z, soil_disc=soil_disc, cube=cube)
+                         centre_mask=data.get("centre"), soil_z=soil_z, soil_disc=soil_disc, cube=cube,
+                         fruit_judge=judge)
     out = res.to_json()
+    if fruit_report:
+        out["fruit_pieces"] = fruit_report
     out["input"] = str(ply)
     out["soil_source"] = soil_source
     out["scale"]["calibrated_input"] = bool(calibrated)
@@ -158,6 +166,18 @@ def run(ws, cfg=None, *, points_path: str | Path | None = None, calibrated: bool
     for r in res.notes:
         log.info("traits: %s", r)
     return out
+
+
+def fruit_views(ws: Workspace) -> list | None:
+    """The workspace's frames with their cameras and masks (:func:`plantsplat.train.data.load_scene`; the frames
+    without a plant left out), or None where it has none of them."""
+    if not ws.masks_dir.is_dir():
+        return None
+    try:
+        return load_scene(ws, need_masks=True, skip_excluded=True).views
+    except PlantsplatError as e:
+        log.info("traits: the frames cannot be read (%s): fruit pieces are not checked against them", e)
+        return None
 
 
 def _height_bounds(out: dict, res: TraitResult, soil_z: float | None, disc: tuple | None, scale_se: float | None,
