@@ -4,8 +4,9 @@ Fruit colour model (documented, not tuned to a scene): a point is fruit-coloured
 within ``fruit_hue_deg`` of pure red, its saturation is at least ``fruit_min_saturation`` and its
 value at least ``fruit_min_value`` (ripe strawberries; unripe white/green fruit are not counted).
 Fruit-coloured plant points are clustered with DBSCAN (radius ``fruit_eps_cm``); clusters with at
-least ``fruit_min_points`` points and an extent of at least ``fruit_min_size_cm`` count as fruit.
-Touching fruit merge into one cluster and are counted once.
+least ``fruit_min_points`` points and an extent of at least ``fruit_min_size_cm`` are the pieces of
+fruit. Touching fruit merge into one cluster and are counted once; pieces of one fruit that the frames
+show as one red region are joined by the traits stage (:mod:`plantsplat.traits.fruit_views`).
 """
 
 from __future__ import annotations
