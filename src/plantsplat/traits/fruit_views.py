@@ -43,7 +43,7 @@ def candidate_pairs(pieces: Sequence[np.ndarray]) -> list[tuple[int, int]]:
     piece's longest extent: two pieces farther apart cannot be parts of one fruit's surface.
 
     Example:
-        >>> a, b = np.array([[0, 0, 0], [2.0, 0, 0]]), np.array([[3.0, 0, 0], [4.0, 0, 0]])
+        >>> a, b = np.array([[0, 0, 0], [2.0, 0, 0]]), np.array([[2.5, 0, 0], [4.0, 0, 0]])
         >>> candidate_pairs([a, b]), candidate_pairs([a, b + [5.0, 0, 0]])
         ([(0, 1)], [])
     """
