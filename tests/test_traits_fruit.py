@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from plantsplat.synth.camera import look_at
 from plantsplat.train.data import View
 from plantsplat.traits.config import TraitsConfig
 from plantsplat.traits.fruit import count_fruit
@@ -25,14 +26,7 @@ def _camera(azimuth_deg, elevation_deg=25.0, distance=30.0):
     """World-to-camera (OpenCV axes) of a camera on a circle around the origin, looking at it."""
     a, e = np.radians(azimuth_deg), np.radians(elevation_deg)
     c = distance * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
-    z = -c / np.linalg.norm(c)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
-    M = np.eye(4)
-    M[:3, :3], M[:3, 3] = R, -R @ c
-    return M
+    return np.linalg.inv(look_at(c, np.zeros(3)))
 
 
 def _view(name, viewmat, fruit, occluder=None):
