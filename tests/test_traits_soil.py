@@ -75,6 +75,24 @@ def test_soil_wholly_hidden_is_not_invented():
     assert _layer(pts) is None
 
 
+def test_soil_seen_only_at_grazing_angles_is_not_a_layer():
+    """Synthetic demo seed 732 (2026-11-30): a wide crown hides the soil from above; the frames that see it over the
+    rim put a few points on it and more anywhere up to the rim, the crown's points near the axis among them, over the
+    stray points under it. The windows climb that scatter to just under the rim (0.7 cm above the true soil there); a
+    window holding fewer points than lie under it is no surface, so no layer comes out. The same scatter over a soil
+    seen from above does not hide it."""
+    rng = np.random.default_rng(9)
+    soil_z = RIM_Z - 1.2
+    under = np.column_stack([_disc(rng, 30, 0.0)[:, :2], rng.uniform(soil_z - 4.0, soil_z - 0.3, 30)])
+    scatter = np.column_stack([_disc(rng, 45, 0.0)[:, :2], rng.uniform(soil_z, RIM_Z, 45)])
+    crown = np.column_stack([_disc(rng, 12, 0.0, radius=0.3 * RIM_R)[:, :2], rng.uniform(soil_z, RIM_Z, 12)])
+    room = rng.uniform([-40, -40, 0], [60, 60, 60], (500, 3))
+    grazing = np.concatenate([_disc(rng, 12, soil_z, sigma=0.2), under, scatter, crown, room])
+    assert _layer(grazing) is None
+    layer = _layer(np.concatenate([grazing, _disc(rng, 80, soil_z)]))
+    assert layer is not None and layer.z == pytest.approx(soil_z, abs=0.1)
+
+
 def test_a_pot_filled_to_the_rim():
     rng = np.random.default_rng(4)
     layer = _layer(_pot_scene(rng, RIM_Z - 0.25, 150, leaves=250, under=5))
