@@ -25,8 +25,11 @@ from collections.abc import Callable, Sequence
 
 import cv2
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from plantsplat.train.data import project
 from plantsplat.traits.config import TraitsConfig
 from plantsplat.traits.fruit import fruit_mask
 
@@ -67,12 +70,11 @@ def red_regions(image: np.ndarray, mask: np.ndarray | None, s: TraitsConfig) -> 
     return cv2.connectedComponents(red, connectivity=8)[1]
 
 
-def projected(points: np.ndarray, viewmat: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """``[M, 2]`` pixel positions of the points ``[N, 3]`` in front of the camera (``viewmat``: world to camera,
-    OpenCV axes; ``K``: pinhole)."""
-    X = points @ viewmat[:3, :3].T + viewmat[:3, 3]
-    X = X[X[:, 2] > 0]
-    return (X[:, :2] / X[:, 2:3]) @ K[:2, :2].T + K[:2, 2]
+def in_front(points: np.ndarray, view) -> np.ndarray:
+    """``[M, 2]`` pixel positions in ``view`` of the points ``[N, 3]`` in front of its camera
+    (:func:`plantsplat.train.data.project`)."""
+    uv, z = project(points, view)
+    return uv[z > 0]
 
 
 def shown_region(uv: np.ndarray, regions: np.ndarray) -> int:
@@ -108,7 +110,7 @@ def view_votes(pieces: Sequence[np.ndarray], pairs: list[tuple[int, int]], views
     wanted = sorted({i for p in pairs for i in p})
     for view in views:
         regions = red_regions(view.image, view.mask, s)
-        uv = {i: projected(pieces[i], view.viewmat, view.K) for i in wanted}
+        uv = {i: in_front(pieces[i], view) for i in wanted}
         shown = {i: shown_region(uv[i], regions) for i in wanted}
         for a, b in pairs:
             if shown[a] and shown[b] and not overlap(uv[a], uv[b]):
@@ -119,21 +121,12 @@ def view_votes(pieces: Sequence[np.ndarray], pairs: list[tuple[int, int]], views
 def joined_groups(n: int, votes: dict[tuple[int, int], tuple[int, int]]) -> list[int]:
     """Group number of each of ``n`` pieces, joining the pairs whose frames say "one" more often than "two" in at
     least :data:`MIN_VIEWS` frames (groups numbered by their first piece)."""
-    parent = list(range(n))
-
-    def root(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for (a, b), (one, two) in sorted(votes.items()):
-        if one + two >= MIN_VIEWS and one > two:
-            ra, rb = root(a), root(b)
-            parent[max(ra, rb)] = min(ra, rb)
-    roots = [root(i) for i in range(n)]
-    number = {r: k for k, r in enumerate(dict.fromkeys(roots))}
-    return [number[r] for r in roots]
+    joined = [(a, b) for (a, b), (one, two) in votes.items() if one + two >= MIN_VIEWS and one > two]
+    edges = np.array(joined, dtype=np.int64).reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    labels = connected_components(graph, directed=False)[1]
+    number = {g: k for k, g in enumerate(dict.fromkeys(labels.tolist()))}
+    return [number[g] for g in labels.tolist()]
 
 
 def judge_by_views(load_views: Callable[[], Sequence | None], s: TraitsConfig, report: dict
