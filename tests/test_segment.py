@@ -195,6 +195,23 @@ def test_the_crown_on_a_soil_sfm_found_is_not_pot_but_the_soil_heaped_by_the_wal
     assert thick.contains(np.array([[25.0, 10.0, 9.55], [25.0, 10.0, 9.75]]), margin=1.0).tolist() == [True, False]
 
 
+def test_over_the_soil_is_the_inside_between_an_sfm_soil_and_the_rim():
+    """Issue 40. Where SfM points put the soil, the pot's inside between it and the rim is where a quick model's blur of
+    the soil floats (:meth:`Pot.over_soil`); outside the inside's radius, under the soil or over the rim it is not, and
+    a soil of the quick model's own gives none."""
+    from dataclasses import replace
+
+    from plantsplat.segment.object3d import Pot, pot_inside_radius
+
+    pot = Pot(centre=np.array([25.0, 10.0]), rim_z=12.0, soil_z=9.5, heights=np.array([0.0, 12.0]),
+              radii=np.array([6.0, 8.0]), soil_bottom=9.5)
+    inside = pot_inside_radius(8.0)
+    probe = np.array([[25.0, 10.0, 10.5], [25.0 + 0.9 * inside, 10.0, 11.9], [25.0 + 1.1 * inside, 10.0, 10.5],
+                      [25.0, 10.0, 9.4], [25.0, 10.0, 12.1]])
+    assert replace(pot, soil_points=120).over_soil(probe).tolist() == [True, True, False, False, False]
+    assert not pot.over_soil(probe).any()
+
+
 def test_soil_drawn_by_a_few_wide_gaussians_is_found_by_their_footprints():
     """Issue 41. A quick model draws an even soil with a few wide, flat Gaussians: their centres alone cover too little
     of the disc inside the rim, their footprints (one standard deviation) cover it."""

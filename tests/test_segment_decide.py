@@ -141,3 +141,39 @@ def test_a_piece_apart_that_no_sfm_point_holds_goes_and_one_that_a_point_holds_s
     assert plant[:len(truth)][truth].mean() > 0.99 and facts["unsupported"] >= 30
     without, _ = decide_plant(mu, rgb, weight, candidate, rest, 45.0)
     assert without[n - 60:].all()  # without SfM points nothing tells the two apart
+
+
+def test_in_the_pot_over_the_soil_the_body_too_needs_an_sfm_point_near():
+    """Issue 40. A quick model blurs a pot's dark soil into half-transparent layers a centimetre or two over it, joined
+    to the crown's foot: on the plant's body, and of a colour the plant's dark parts share, so the body's prior keeps
+    them. Over the soil (``needs_support``) a Gaussian of the body must lie as near an SfM point as the body's
+    Gaussians do: the blur floats over the soil's points and goes, the crown's foot, which SfM holds, stays; the rest
+    of the plant does not change."""
+    rng = np.random.default_rng(9)
+    mu, rgb, weight, candidate, rest, truth = _scene(rng)
+    dark = np.array([0.12, 0.08, 0.04])
+    foot = np.c_[rng.normal(0, 0.3, (60, 2)), rng.uniform(12.2, 15.0, 60)]  # the crown's foot over the soil at 12
+    a, r = rng.uniform(0, 2 * np.pi, 80), rng.uniform(2.0, 6.5, 80)
+    blur = np.c_[r * np.cos(a), r * np.sin(a), rng.uniform(13.3, 14.0, 80)]  # 1.3-2 cm over the soil
+    a, r = rng.uniform(0, 2 * np.pi, 400), 6.5 * np.sqrt(rng.uniform(0, 1, 400))
+    soil = np.c_[r * np.cos(a), r * np.sin(a), rng.normal(12.0, 0.05, 400)]  # SfM points only, no Gaussians
+    n0 = len(mu)
+    shaded, pot = np.flatnonzero(truth)[::6], rest & (mu[:, 2] < 14.5) & (np.hypot(mu[:, 0], mu[:, 1]) < 30)
+    rgb[shaded] = np.clip(rng.normal(dark, 0.02, (len(shaded), 3)), 0, 1)  # the plant's shaded parts and the pot are
+    rgb[pot] = np.clip(rng.normal(dark, 0.02, (int(pot.sum()), 3)), 0, 1)  # dark too: colour does not decide
+    mu = np.concatenate([mu, foot, blur])
+    rgb = np.concatenate([rgb, np.clip(rng.normal(dark, 0.02, (140, 3)), 0, 1)])
+    n = len(mu)
+    weight, candidate = np.ones(n), np.concatenate([candidate, np.ones(140, bool)])
+    rest = np.concatenate([rest, np.zeros(140, bool)])
+    sfm = np.concatenate([mu[np.flatnonzero(truth)[::3]], mu[n0:n0 + 60:3], soil])
+    sfm_distance = cKDTree(sfm + rng.normal(0, 0.05, sfm.shape)).query(mu)[0]
+    over_soil = np.zeros(n, bool)
+    over_soil[n0:] = True
+    gap, _, _ = pieces(mu[candidate], DecideConfig().attach_reach * 45.0)
+    assert (gap[-140:] == 0).all()  # the foot and the blur are on the body
+    without, _ = decide_plant(mu, rgb, weight, candidate, rest, 45.0, sfm_distance)
+    assert without[n0 + 60:].mean() > 0.9  # the body's prior keeps the blur
+    plant, facts = decide_plant(mu, rgb, weight, candidate, rest, 45.0, sfm_distance, needs_support=over_soil)
+    assert plant[n0:n0 + 60].all() and plant[n0 + 60:].mean() < 0.1, facts
+    assert (plant[:n0] == without[:n0]).all() and facts["unsupported_on_body"] >= 70

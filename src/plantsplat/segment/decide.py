@@ -20,7 +20,9 @@ the wrong depth, a few Gaussians beside the cube. Four more kinds of evidence ho
   Gaussians lie to them is learned per capture (:func:`support_reach`). A piece apart from the body none
   of whose Gaussians is that near an SfM point is held by nothing the frames agree on (a few Gaussians
   a quick model hangs in front of a blank wall): its prior is turned against it, so only a colour
-  that is clearly the plant's keeps it;
+  that is clearly the plant's keeps it. Where the caller says position cannot vouch even for the body
+  (``needs_support``: over a pot's soil, which a quick model blurs into layers joined to the crown), each
+  Gaussian there must be that near an SfM point itself;
 - **neighbours**: a Gaussian takes the label of its neighbours in 3D unless their colours differ (a
   Potts term on the k-nearest-neighbour graph of the candidates, weighted as GrabCut weights
   neighbouring pixels), so a white flower on a green plant in a white room stays with its plant.
@@ -172,10 +174,16 @@ def support_reach(sfm_distance: np.ndarray, gap: np.ndarray) -> float:
     return float(np.percentile(sfm_distance[gap == 0], SUPPORT_PERCENTILE))
 
 
-def unsupported(sfm_distance: np.ndarray, gap: np.ndarray, label: np.ndarray) -> np.ndarray:
+def unsupported(sfm_distance: np.ndarray, gap: np.ndarray, label: np.ndarray,
+                needs_support: np.ndarray | None = None) -> np.ndarray:
     """The candidates (``[N]`` bool) in pieces apart from the body none of whose Gaussians lies within
-    :func:`support_reach` of an SfM point."""
-    return (gap > 0) & (piece_min(sfm_distance, label) > support_reach(sfm_distance, gap))
+    :func:`support_reach` of an SfM point, and those of ``needs_support`` (``[N]`` bool, body included) that do not
+    lie that near one themselves."""
+    reach = support_reach(sfm_distance, gap)
+    out = (gap > 0) & (piece_min(sfm_distance, label) > reach)
+    if needs_support is not None:
+        out |= needs_support & (sfm_distance > reach)
+    return out
 
 
 def colour_teachers(body: np.ndarray, sfm_distance: np.ndarray | None, reach: float) -> np.ndarray:
@@ -190,14 +198,16 @@ def colour_teachers(body: np.ndarray, sfm_distance: np.ndarray | None, reach: fl
 
 def decide_plant(mu: np.ndarray, rgb: np.ndarray, weight: np.ndarray, candidate: np.ndarray,
                  rest: np.ndarray, orbit_radius: float, sfm_distance: np.ndarray | None = None,
-                 cfg: DecideConfig | None = None) -> tuple[np.ndarray, dict]:
+                 cfg: DecideConfig | None = None, needs_support: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """The plant among the ``candidate`` Gaussians (``[N]`` bool): ``(plant [N] bool, facts)``.
 
     ``mu`` ``[N, 3]`` centres; ``rgb`` ``[N, 3]`` base colours in [0, 1]; ``weight`` ``[N]`` how much each counts in
     the colour models (its opacity); ``rest``: Gaussians surely not plant (the far room, the floor, the pot, the
     cube); ``orbit_radius``: the cameras' distance from the axis (model units); ``sfm_distance`` ``[N]``: each
     Gaussian's distance to the nearest SfM point (None: none known). The plant's colours are learned from its body
-    (:func:`pieces`) where SfM found it (:func:`colour_teachers`), the rest's from ``rest``."""
+    (:func:`pieces`) where SfM found it (:func:`colour_teachers`), the rest's from ``rest``. ``needs_support`` ``[N]``
+    (bool): where a candidate needs an SfM point within the support reach even on the body (:func:`unsupported`; the
+    pot's inside over the soil, where a quick model blurs the soil into layers joined to the crown)."""
     cfg = cfg or DecideConfig()
     idx = np.flatnonzero(candidate)
     plant = np.zeros(len(mu), bool)
@@ -209,13 +219,15 @@ def decide_plant(mu: np.ndarray, rgb: np.ndarray, weight: np.ndarray, candidate:
     body = idx[gap == 0]
     teach = colour_teachers(body, sfm_distance, cfg.teach_reach * typical)
     llr = colour_evidence(rgb[idx], rgb[teach], weight[teach], rgb[rest], weight[rest], cfg)
-    held = np.ones(len(idx), bool) if sfm_distance is None else ~unsupported(sfm_distance[idx], gap, label)
+    held = np.ones(len(idx), bool) if sfm_distance is None else ~unsupported(
+        sfm_distance[idx], gap, label, None if needs_support is None else needs_support[idx])
     prior = np.where(held, cfg.prior_log_odds, -cfg.prior_log_odds) - (gap / max(cfg.gap_scale * size, 1e-12)) ** 2
     keep = min_cut_labels(prior + llr, i, j, cfg.smoothness * w)
     plant[idx[keep]] = True
     facts = {"decided_by": "position, colour and neighbours", "candidates": int(len(idx)),
              "apart_from_body": int((gap > 0).sum()), "colours_from": int(len(teach)), "dropped": int((~keep).sum()),
              "dropped_apart": int((~keep & (gap > 0)).sum()), "unsupported": int((~held).sum()),
+             "unsupported_on_body": int((~held & (gap == 0)).sum()),
              "neighbour_cm": round(typical, 3),
              "body_size": round(size, 2)}
     return plant, facts

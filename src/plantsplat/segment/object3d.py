@@ -222,6 +222,16 @@ class Pot:
         crown = d < CROWN_SHARE * pot_inside_radius(self.radii[-1])
         return np.where(crown, min(self.soil_thickness, float(margin)), float(margin))
 
+    def over_soil(self, points: np.ndarray) -> np.ndarray:
+        """Points ``[N, 3]`` in the pot's inside between the soil SfM points put (:func:`with_sfm_soil`) and the rim,
+        where a quick model blurs the soil into half-transparent layers over it; none where the soil is the quick
+        model's own or was not seen. ``[N]``"""
+        if not self.soil_points:
+            return np.zeros(len(points), bool)
+        d = np.linalg.norm(points[:, :2] - self.centre, axis=1)
+        z = points[:, 2]
+        return (d < pot_inside_radius(self.radii[-1])) & (z > self.soil_z) & (z < self.rim_z)
+
     def summary(self) -> dict:
         return {"centre_cm": np.round(self.centre, 2).tolist(), "rim_z_cm": round(self.rim_z, 2),
                 "soil_z_cm": round(self.soil_z, 2), "soil_bottom_z_cm": round(self.soil_bottom, 2),
@@ -463,14 +473,15 @@ def pot_solid(grid: Grid, free: np.ndarray, seen: np.ndarray, axis_xy: np.ndarra
 
 
 def _weigh_evidence(params: dict, mu: np.ndarray, candidate: np.ndarray, orbit_radius: float, cfg: DecideConfig,
-                    sfm_distance: np.ndarray | None):
+                    sfm_distance: np.ndarray | None, needs_support: np.ndarray | None = None):
     """The candidates' colours and neighbours weighed (:func:`decide_plant`) against every opaque Gaussian that is no
     candidate; the plant's colours learned near the SfM points (``sfm_distance`` ``[N]``: each Gaussian's distance to
-    the nearest; None: no points)."""
+    the nearest; None: no points). ``needs_support`` ``[N]``: where the body's Gaussians too need an SfM point near."""
     rgb = sh_to_rgb(params["sh0"][:, 0, :]).clamp(0, 1).numpy().astype(np.float64)
     opacity = torch.sigmoid(params["opacities"]).numpy().reshape(-1).astype(np.float64)
     opaque = opacity > cfg.sure_opacity
-    return decide_plant(mu, rgb, opacity, candidate, opaque & ~candidate, orbit_radius, sfm_distance, cfg)
+    return decide_plant(mu, rgb, opacity, candidate, opaque & ~candidate, orbit_radius, sfm_distance, cfg,
+                        needs_support)
 
 
 def plant_top(params: dict, plant: np.ndarray) -> float | None:
@@ -536,6 +547,7 @@ def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: n
     if sfm_distance is not None:
         region &= sfm_distance < sfm_reach * cam_radial
     part = np.zeros(len(mu), np.int8)
+    over_soil = None
     if cube is not None:
         region &= mu[:, 2] > ground_cm
         in_cube = in_cube_box(mu, cube.size, 0.5)
@@ -546,6 +558,7 @@ def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: n
         if pot is not None:
             pot = with_sfm_soil(pot, sfm_points)
             in_pot = pot.contains(mu, pot_margin_cm)
+            over_soil = pot.over_soil(mu)
             region &= ~in_pot
             part[in_pot] = PART_NAMES.index("pot")
             info["pot"] = pot.summary()
@@ -556,7 +569,7 @@ def object_model(params: dict, views: list, cube: CubeSpec | None, sfm_points: n
     plant = candidate
     decide = decide or DecideConfig()
     if decide.enabled:
-        plant, info["decision"] = _weigh_evidence(params, mu, candidate, cam_radial, decide, sfm_distance)
+        plant, info["decision"] = _weigh_evidence(params, mu, candidate, cam_radial, decide, sfm_distance, over_soil)
     joined = join_out_of_frame(mu, plant, idx[(share >= joined_in_view) & (share < min_in_view)], join_reach * cam_radial)
     plant = plant | joined
     info["joined_out_of_frame"] = int(joined.sum())
