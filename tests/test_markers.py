@@ -128,3 +128,51 @@ def test_frames_detected_in_threads_give_what_one_thread_gives(tmp_path, monkeyp
         if n in two.frames:
             assert set(two.frames[n]) == {k % 3} and np.array_equal(two.frames[n][k % 3], one.frames[n][k % 3])
             assert np.abs(two.frames[n][k % 3] - (CORNERS + 6.0 * k)).max() < 0.35
+
+
+def _marker_frames(ws, count: int) -> list[str]:
+    """``count`` frames in ``ws``'s images folder, each showing one marker but the fifth."""
+    ws.images_dir.mkdir(parents=True)
+    names = []
+    for k in range(count):
+        name = f"frame_{k:05d}.png"
+        img = draw_marker(k % 3, CORNERS + 6.0 * k, 0.6) if k != 4 else np.full((480, 480), 128, np.uint8)
+        cv2.imwrite(str(ws.images_dir / name), img)
+        names.append(name)
+    return names
+
+
+def test_markers_found_beside_the_stage_are_those_found_in_it(tmp_path):
+    """The poses stage detects the markers in a process of its own at the lowest priority, beside structure from
+    motion (issue 43): the same corners to the last bit, the same ``markers.json``, and its folder gone after."""
+    from plantsplat.poses import PosesConfig
+    from plantsplat.poses.stage import MARKERS_DIR, detect_markers, finish_markers, start_markers
+    from plantsplat.workspace import Workspace
+
+    ws = Workspace(tmp_path / "ws")
+    names = _marker_frames(ws, 6)
+    cube = CubeSpec()
+    here, there = {"timings": {}}, {"timings": {}}
+    mine = detect_markers(ws, names, cube, PosesConfig(), here)
+    written = ws.markers_json.read_bytes()
+    ws.markers_json.unlink()
+    theirs = finish_markers(ws, start_markers(ws, names, cube), cube, there)
+    assert ws.markers_json.read_bytes() == written and theirs.names == names
+    assert list(theirs.frames) == list(mine.frames) and theirs.edge_shift_px == mine.edge_shift_px
+    assert all(np.array_equal(theirs.frames[n][m], c) for n, d in mine.frames.items() for m, c in d.items())
+    assert there["frames_with_markers"] == here["frames_with_markers"] == 5 and there["timings"]["detect_markers_s"] > 0
+    assert not (ws.root / ".plantsplat" / "colmap" / MARKERS_DIR).exists()
+
+
+def test_a_frame_the_marker_process_cannot_read_stops_the_stage_with_its_own_line(tmp_path):
+    """A broken frame ends the marker process; the stage gives that frame's one-line error, not the process's."""
+    from plantsplat.errors import PlantsplatError
+    from plantsplat.poses.stage import finish_markers, start_markers
+    from plantsplat.workspace import Workspace
+
+    ws = Workspace(tmp_path / "ws")
+    names = _marker_frames(ws, 3)
+    (ws.images_dir / names[1]).write_bytes(b"not a png")
+    with pytest.raises(PlantsplatError, match=r"frame_00001\.png: unreadable or not an image") as err:
+        finish_markers(ws, start_markers(ws, names, CubeSpec()), CubeSpec(), {"timings": {}})
+    assert err.value.exit_code == 1 and "\n" not in str(err.value)

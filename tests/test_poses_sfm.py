@@ -309,6 +309,42 @@ def test_matching_processes_write_what_one_process_writes(synth_run, tmp_path, m
     assert tables[1] == tables[2]
 
 
+def test_pairs_matched_in_the_background_meanwhile_give_what_one_process_gives(synth_run, tmp_path):
+    """The video neighbours are matched in a process of their own while the vocabulary is learned, then the retrieved
+    pairs in others (issue 43): the database holds what one process matching every pair writes. A job stopped
+    (Ctrl-C, an error) leaves no process and no copy of the database behind (their logs stay)."""
+    import sqlite3
+
+    from plantsplat.poses import sfm
+
+    _, ws, _ = synth_run
+    colmap = ws.root / ".plantsplat" / "colmap"
+    video = [tuple(line.split()) for line in (colmap / "pairs_video.txt").read_text().splitlines()][::4]
+    rest = [tuple(line.split()) for line in (colmap / "pairs_main.txt").read_text().splitlines()][::8]
+    one = PosesConfig().sfm_options()
+    tables = {}
+    for how in ("one", "beside"):
+        db = tmp_path / how / "database.db"
+        db.parent.mkdir()
+        shutil.copy(colmap / "database.db", db)
+        with sqlite3.connect(db) as c:
+            c.execute("DELETE FROM matches")
+            c.execute("DELETE FROM two_view_geometries")
+        if how == "one":
+            sfm.match_pairs(db, db.parent, video + rest, one, "all")
+        else:
+            job = sfm.start_matching(db, db.parent, video, one, "video", 1)
+            assert job.procs and job.procs[0].poll() is None  # it returned at once
+            sfm.match_pairs(db, db.parent, rest, one, "main")
+            sfm.finish_matching(job)
+        with sqlite3.connect(db) as c:
+            tables[how] = [sorted(c.execute(f"SELECT * FROM {t}").fetchall()) for t in ("matches", "two_view_geometries")]
+    assert len(video) >= 20 and len(rest) >= 20 and tables["one"] == tables["beside"]
+    job = sfm.start_matching(db, db.parent, rest, one, "stopped", 2)
+    sfm.stop_matching(job)
+    assert all(p.poll() is not None for p in job.procs) and not list(db.parent.glob("match_stopped_*/database.db*"))
+
+
 def test_a_failed_global_mapping_process_says_where_its_log_is(tmp_path):
     """The global mapping runs in a process of its own (issue 43); when it fails, the stage stops with one line naming
     its log and how to map in the stage's own process."""

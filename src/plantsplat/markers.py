@@ -215,9 +215,15 @@ def detect_frames(image_dir: Path, names: list[str], cube: CubeSpec = CubeSpec()
             shifts.extend(s)
     shift = float(np.median(shifts)) if len(shifts) >= MIN_SHIFT_SAMPLES else 0.0
     frames = {n: {m: shift_corners(c, shift) for m, c in d.items()} for n, d in raw.items()}
-    log.info("markers: found in %d of %d frames; edge shift %.2f px (from %d detections)", len(frames), len(names),
-             shift, len(shifts))
-    return Markers(frames=frames, edge_shift_px=shift, shift_samples=len(shifts), names=list(names))
+    markers = Markers(frames=frames, edge_shift_px=shift, shift_samples=len(shifts), names=list(names))
+    log_found(markers)
+    return markers
+
+
+def log_found(markers: Markers) -> None:
+    """Say in how many frames the markers were found, and the edge shift."""
+    log.info("markers: found in %d of %d frames; edge shift %.2f px (from %d detections)", len(markers.frames),
+             len(markers.names), markers.edge_shift_px, markers.shift_samples)
 
 
 def write_markers(path: Path, markers: Markers, cube: CubeSpec) -> None:

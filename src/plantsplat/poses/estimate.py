@@ -52,6 +52,7 @@ from plantsplat.poses.sfm import (
     colmap_logging,
     extract_features,
     finish_global_mapping,
+    finish_matching,
     global_then_incremental,
     incremental,
     match_exhaustive,
@@ -59,6 +60,8 @@ from plantsplat.poses.sfm import (
     merge_models,
     retriangulate,
     start_global_mapping,
+    start_matching,
+    stop_matching,
     write_model,
 )
 from plantsplat.workspace import Workspace
@@ -85,12 +88,19 @@ def _match(db: Path, work: Path, names: list[str], cfg: PosesConfig, report: dic
         match_exhaustive(db, opts)
         report["pairs"] = len(names) * (len(names) - 1) // 2
         return None
-    vocab = build_vocabulary(db, work / "vocabulary.bin", cfg.vocabulary_words, cfg.seed)
-    pairs = sorted(set(video_pairs(names, cfg.video_window))
-                   | set(retrieval_pairs(db, vocab, cfg.retrieval_neighbours)))
-    report["pairs"] = len(pairs)
-    log.info("SfM: matching %d pairs (video neighbours and retrieval)", len(pairs))
-    match_pairs(db, work, pairs, opts, "main")
+    video = sorted({tuple(sorted(p)) for p in video_pairs(names, cfg.video_window)})  # as retrieval names them
+    log.info("SfM: matching %d pairs of video neighbours while a vocabulary is learned", len(video))
+    early = start_matching(db, work, video, opts, "video", 1 if opts.num_threads > 1 else 0)
+    try:  # learning the vocabulary and retrieval take one core: the video neighbours are matched on the other
+        vocab = build_vocabulary(db, work / "vocabulary.bin", cfg.vocabulary_words, cfg.seed)
+        retrieved = sorted(set(retrieval_pairs(db, vocab, cfg.retrieval_neighbours)) - set(video))
+        report["pairs"] = len(video) + len(retrieved)
+        log.info("SfM: matching %d more pairs (retrieval)", len(retrieved))
+        match_pairs(db, work, retrieved, opts, "main")
+    except BaseException:
+        stop_matching(early)
+        raise
+    finish_matching(early)
     return vocab
 
 

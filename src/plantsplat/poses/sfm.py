@@ -163,32 +163,66 @@ def match_pairs(db: Path, work_dir: Path, pairs: list[tuple[str, str]], opts: Sf
     matches are gathered into ``db``. A pair's matches and verified geometry
     depend on that pair alone (seeded RANSAC; tested), so the database holds the same rows one process would write,
     where COLMAP's own threads change one or two pairs' matches in about one run in five (:data:`MATCH_THREADS`)."""
-    if not pairs:
-        return
     workers = max(1, min(opts.num_threads, len(pairs) // MIN_PAIRS_PER_WORKER))
+    finish_matching(start_matching(db, work_dir, pairs, opts, tag, 0 if workers == 1 else workers))
+
+
+@dataclass
+class MatchJob:
+    """Matching processes started by :func:`start_matching` (none when it matched in this process)."""
+
+    db: Path
+    parts: list[Path] = dataclasses.field(default_factory=list)
+    procs: list[subprocess.Popen] = dataclasses.field(default_factory=list)
+
+
+def start_matching(db: Path, work_dir: Path, pairs: list[tuple[str, str]], opts: SfmConfig, tag: str,
+                   processes: int) -> MatchJob:
+    """Start matching ``pairs`` into ``db`` in ``processes`` one-thread processes (each on its own copy of ``db``) and
+    return at once; :func:`finish_matching` waits for them and gathers their matches. With ``processes`` 0 the pairs
+    are matched here before it returns. Work that needs one core can go on meanwhile, such as learning the
+    vocabulary that chooses the next pairs; the copies are made now, so matches gathered into ``db`` later are not in
+    them (a pair the database held is skipped, so give each job pairs of its own)."""
+    job = MatchJob(db)
+    if not pairs:
+        return job
     write_pairs(work_dir / f"pairs_{tag}.txt", pairs)  # what was matched
-    if workers == 1:
+    if processes == 0:
         match_pair_list(db, work_dir / f"pairs_{tag}.txt", opts)
-        return
+        return job
     for stale in work_dir.glob(f"match_{tag}_*"):  # an interrupted run's copies
         shutil.rmtree(stale, ignore_errors=True)
-    parts = [work_dir / f"match_{tag}_{k}" for k in range(workers)]
-    procs: list[subprocess.Popen] = []
+    job.parts = [work_dir / f"match_{tag}_{k}" for k in range(processes)]
     try:
-        procs.extend(_start_worker(db, part, pairs[k::workers], opts) for k, part in enumerate(parts))
-        _wait_workers(db, procs, parts)
-        for part in parts:
-            _gather_matches(db, part / "database.db")
+        job.procs.extend(_start_worker(db, part, pairs[k::processes], opts) for k, part in enumerate(job.parts))
+    except BaseException:
+        stop_matching(job)
+        raise
+    return job
+
+
+def finish_matching(job: MatchJob) -> None:
+    """Wait for the processes of :func:`start_matching` and gather their matches into its database."""
+    try:
+        _wait_workers(job.db, job.procs, job.parts)
+        for part in job.parts:
+            _gather_matches(job.db, part / "database.db")
     finally:
-        for proc in procs:  # Ctrl-C or an error: no worker goes on matching
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
-        for part in parts:  # the copies go; a failed worker's log stays
-            for f in part.glob("database.db*"):
-                f.unlink(missing_ok=True)
-            if not (part / WORKER_LOG).is_file() or all(p.returncode == 0 for p in procs):
-                shutil.rmtree(part, ignore_errors=True)
+        stop_matching(job)
+
+
+def stop_matching(job: MatchJob) -> None:
+    """End the job's processes that still run (Ctrl-C or an error: no worker goes on matching) and remove their
+    copies of the database; a failed worker's log stays."""
+    for proc in job.procs:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    for part in job.parts:
+        for f in part.glob("database.db*"):
+            f.unlink(missing_ok=True)
+        if not (part / WORKER_LOG).is_file() or all(p.returncode == 0 for p in job.procs):
+            shutil.rmtree(part, ignore_errors=True)
 
 
 def _wait_workers(db: Path, procs: list[subprocess.Popen], parts: list[Path]) -> None:
@@ -197,7 +231,7 @@ def _wait_workers(db: Path, procs: list[subprocess.Popen], parts: list[Path]) ->
         for proc, part in zip(procs, parts):
             if proc.poll() not in (None, 0):
                 raise PlantsplatError(f"{db}: a matching process ended with code {proc.returncode} "
-                                      f"({_worker_said(part)}); re-run with --poses.num-threads 1 to match in "
+                                      f"({worker_said(part)}); re-run with --poses.num-threads 1 to match in "
                                       "this process")
         time.sleep(WORKER_POLL_S)
 
@@ -223,7 +257,7 @@ def spawn_worker(module: str, args: list[str], here: Path) -> subprocess.Popen:
                                 stdout=log_file, stderr=subprocess.STDOUT, cwd=here)
 
 
-def _worker_said(here: Path) -> str:
+def worker_said(here: Path) -> str:
     """The last line a worker process wrote in its folder ``here``, and where the rest is."""
     lines = (here / WORKER_LOG).read_text(errors="replace").strip().splitlines() or ["no message"]
     return f"{lines[-1]}; see {here / WORKER_LOG}"
@@ -351,7 +385,7 @@ def finish_global_mapping(proc: subprocess.Popen, out_dir: Path) -> list:
 
     if proc.wait() != 0:
         raise PlantsplatError(f"{out_dir}: the global mapping process ended with code {proc.returncode} "
-                              f"({_worker_said(out_dir)}); re-run with --poses.num-threads 1 to map in this process")
+                              f"({worker_said(out_dir)}); re-run with --poses.num-threads 1 to map in this process")
     done = out_dir / MAPPED_DIR
     models = [pycolmap.Reconstruction(str(done / k)) for k in sorted((p.name for p in done.iterdir()), key=int)]
     (out_dir / "database.db").unlink(missing_ok=True)

@@ -5,7 +5,8 @@ COLMAP model or ``transforms.json``; it writes the model (``WS/sparse/0`` binary
 points (``WS/sparse_points.ply``), nerfstudio's ``WS/transforms.json``, the cube's markers (``WS/markers.json``)
 and the report ``WS/poses.json``. Registration, calibration and the checks are :mod:`plantsplat.poses.estimate`.
 
-1. The cube's markers are detected once (:mod:`plantsplat.markers`, ``WS/markers.json``).
+1. The cube's markers are detected once (:mod:`plantsplat.markers`, ``WS/markers.json``): with SfM and more than
+   one thread in a process of their own at the lowest priority, beside step 2 (:func:`start_markers`).
 2. The frames are registered by SfM (:func:`~plantsplat.poses.estimate.register`), or a model is imported.
 3. The cube gives scale, gravity and origin (:func:`~plantsplat.poses.estimate.calibrate_model`); frames off the
    camera's path are left out, then those left out are localised against the model.
@@ -20,15 +21,17 @@ Usage:
 
 from __future__ import annotations
 
+import pickle
+import subprocess
 import time
 from pathlib import Path
 
 from plantsplat.checks import Check
 from plantsplat.cube import CubeSpec
 from plantsplat.errors import EXIT_POSES_FAILED, PlantsplatError, UsageError
-from plantsplat.io import read_json, write_json_atomic
+from plantsplat.io import read_json, remove_tree, write_json_atomic
 from plantsplat.log import get_logger
-from plantsplat.markers import Markers, detect_frames, write_markers
+from plantsplat.markers import Markers, detect_frames, log_found, write_markers
 from plantsplat.poses.calibrate import up_vector
 from plantsplat.poses.config import MIN_FRAMES, POSES_VERSION, WORK_DIR, PosesConfig
 from plantsplat.poses.distortion import choose_distortion
@@ -42,11 +45,17 @@ from plantsplat.poses.estimate import (
     shown_names,
 )
 from plantsplat.poses.interop import registered_images, write_colmap, write_points_ply, write_transforms
-from plantsplat.poses.sfm import MAP_THREADS, colmap_logging, n_threads_env
+from plantsplat.poses.marker_worker import cube_json, error_file
+from plantsplat.poses.sfm import MAP_THREADS, colmap_logging, n_threads_env, spawn_worker, worker_said
 from plantsplat.pycolmap_loader import load_pycolmap
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
+
+MARKERS_DIR = "markers"
+"""The marker detection process's folder (:func:`start_markers`), in the stage's work folder."""
+MARKERS_FILE = "markers.pickle"
+"""What that process found, in its folder."""
 
 
 def inputs(ws: Workspace, cfg: PosesConfig) -> list[Path]:
@@ -98,16 +107,24 @@ def run(ws: Workspace | str | Path, cfg: PosesConfig | None = None) -> dict:
     t_start = time.perf_counter()
     report: dict = {"version": POSES_VERSION, "total": len(names), "timings": {}, "events": [],
                     "camera_model": cfg.camera_model, "source": "sfm"}
-    markers = detect_markers(ws, names, cube, cfg, report)
     sfm = cfg.import_colmap is None and cfg.import_transforms is None
+    beside = start_markers(ws, names, cube) if sfm and cfg.calibrate and cfg.num_threads > 1 else None
+    markers = None if beside else detect_markers(ws, names, cube, cfg, report)
     times = video_times(ws, names)
-    rec = register(ws, names, times, cfg, report) if sfm else import_model(ws, names, cfg, report)
-    t0 = time.perf_counter()
-    distortion = True
-    if sfm and cfg.distortion == "auto":
-        with colmap_logging(cfg.colmap_log):
-            rec, distortion = choose_distortion(rec, MAP_THREADS, cfg.ba_loss_px, report)
-    report["timings"]["distortion_s"] = time.perf_counter() - t0
+    try:
+        rec = register(ws, names, times, cfg, report) if sfm else import_model(ws, names, cfg, report)
+        t0 = time.perf_counter()
+        distortion = True
+        if sfm and cfg.distortion == "auto":
+            with colmap_logging(cfg.colmap_log):
+                rec, distortion = choose_distortion(rec, MAP_THREADS, cfg.ba_loss_px, report)
+        report["timings"]["distortion_s"] = time.perf_counter() - t0
+        if beside:
+            markers = finish_markers(ws, beside, cube, report)
+    finally:
+        if beside and beside.poll() is None:  # Ctrl-C or an error: the detection does not go on
+            beside.kill()
+            beside.wait()
     t0 = time.perf_counter()
     cal = calibrate_model(rec, markers, cube, cfg, sfm, report, [n for _, n in sorted(zip(times, names))], distortion)
     report["timings"]["calibrate_s"] = time.perf_counter() - t0
@@ -178,11 +195,46 @@ def detect_markers(ws: Workspace, names: list[str], cube: CubeSpec, cfg: PosesCo
     """The cube's markers in every frame (none without ``cfg.calibrate``), written to ``WS/markers.json``."""
     t0 = time.perf_counter()
     markers = detect_frames(ws.images_dir, names, cube) if cfg.calibrate else Markers(names=list(names))
+    _record_markers(ws, markers, cube, report, time.perf_counter() - t0)
+    return markers
+
+
+def start_markers(ws: Workspace, names: list[str], cube: CubeSpec) -> subprocess.Popen:
+    """:func:`detect_markers` in a process of its own at the lowest priority (:mod:`plantsplat.poses.marker_worker`),
+    beside structure from motion, which leaves one core idle in its one-thread steps; :func:`finish_markers` collects
+    them. Its folder is fresh."""
+    here = (ws.root / WORK_DIR / MARKERS_DIR).resolve()
+    remove_tree(here)
+    here.mkdir(parents=True)
+    (here / "names.txt").write_text("".join(f"{n}\n" for n in names))
+    return spawn_worker("plantsplat.poses.marker_worker", [str(ws.images_dir.resolve()), str(here / "names.txt"),
+                                                            cube_json(cube), str(here / MARKERS_FILE)], here)
+
+
+def finish_markers(ws: Workspace, proc: subprocess.Popen, cube: CubeSpec, report: dict) -> Markers:
+    """The markers of the process :func:`start_markers` started, once it ends, written to ``WS/markers.json``; its
+    error as one line when it fails."""
+    here = ws.root / WORK_DIR / MARKERS_DIR
+    code = proc.wait()
+    if error_file(here / MARKERS_FILE).is_file():  # a frame's own one-line error
+        error = read_json(error_file(here / MARKERS_FILE))
+        raise PlantsplatError(error["message"], exit_code=error["exit_code"])
+    if code != 0:
+        raise PlantsplatError(f"{here}: the marker detection process ended with code {code} ({worker_said(here)}); "
+                              "re-run with --poses.num-threads 1 to detect them in this process")
+    with open(here / MARKERS_FILE, "rb") as f:
+        found = pickle.load(f)
+    remove_tree(here)
+    _record_markers(ws, found["markers"], cube, report, found["seconds"])
+    log_found(found["markers"])
+    return found["markers"]
+
+
+def _record_markers(ws: Workspace, markers: Markers, cube: CubeSpec, report: dict, seconds: float) -> None:
     write_markers(ws.markers_json, markers, cube)
-    report["timings"]["detect_markers_s"] = time.perf_counter() - t0
+    report["timings"]["detect_markers_s"] = seconds
     report["frames_with_markers"] = len(markers.frames)
     report["marker_edge_shift_px"] = markers.edge_shift_px
-    return markers
 
 
 def _fail(ws: Workspace, rec, report: dict, failed: list[Check], cfg: PosesConfig) -> PlantsplatError:
