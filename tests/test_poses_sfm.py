@@ -277,6 +277,37 @@ def test_the_same_frames_give_the_same_cameras(synth_run, tmp_path):
     assert again["similarity"]["scale"] == pytest.approx(report["similarity"]["scale"], rel=1e-9)
 
 
+def test_a_broken_frame_stops_the_stage_with_its_own_line_before_mapping(synth_run, tmp_path):
+    """COLMAP leaves out a frame it cannot read without a word; the markers, which read every frame, are found beside
+    structure from motion and would name it only at the end. The stage names it as soon as the features are extracted:
+    nothing is mapped, and the marker process is stopped."""
+    import os
+
+    from plantsplat.errors import PlantsplatError
+
+    _, ws, _ = synth_run
+    ws2 = Workspace(tmp_path / "broken")
+    shutil.copytree(ws.images_dir, ws2.images_dir)
+    broken = sorted(ws2.images_dir.iterdir())[5]
+    broken.write_bytes(b"not a png")
+    with pytest.raises(PlantsplatError, match=f"{broken.name}: unreadable or not an image"):
+        poses_stage.run(ws2, PosesConfig())
+    colmap = ws2.root / ".plantsplat" / "colmap"
+    assert (colmap / "database.db").is_file() and not (colmap / "incremental").exists()
+    procs = Path("/proc")
+    if procs.is_dir():  # Linux: no marker process of this one is left
+        mine = [p for p in procs.glob("[0-9]*") if _child_running(p, os.getpid(), "marker_worker")]
+        assert not mine
+
+
+def _child_running(proc: Path, parent: int, module: str) -> bool:
+    try:
+        stat = (proc / "stat").read_text()
+        return int(stat.rsplit(")", 1)[1].split()[1]) == parent and module in (proc / "cmdline").read_text()
+    except (OSError, ValueError, IndexError):
+        return False
+
+
 def test_matching_processes_write_what_one_process_writes(synth_run, tmp_path, monkeypatch):
     """Pairs dealt out to two matching processes give the same matches and verified geometries, byte for byte, as one
     process matching them all, some of them matched before (issue 43: parallel matching without COLMAP's threads,

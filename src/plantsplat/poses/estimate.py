@@ -34,6 +34,7 @@ import numpy as np
 from plantsplat.checks import Check
 from plantsplat.cube import CubeSpec
 from plantsplat.errors import EXIT_POSES_FAILED, PlantsplatError
+from plantsplat.io import read_image
 from plantsplat.log import get_logger
 from plantsplat.markers import Markers
 from plantsplat.poses.calibrate import calibrate, refine_with_cube, scale_uncertainty
@@ -51,6 +52,7 @@ from plantsplat.poses.sfm import (
     ROUND_BA_ITERATIONS,
     colmap_logging,
     extract_features,
+    extracted_names,
     finish_global_mapping,
     finish_matching,
     global_then_incremental,
@@ -224,6 +226,9 @@ def register(ws: Workspace, names: list[str], times: list[float], cfg: PosesConf
     log.info("SfM: extracting SIFT features from %d frames", len(names))
     db = extract_features(ws.images_dir, names, work, cfg.sfm_options())
     timings["extract_s"] = time.perf_counter() - t0
+    extracted = extracted_names(db)
+    for name in (n for n in names if n not in extracted):  # a broken frame: its own one-line error now, not at the end
+        read_image(ws.images_dir / name, mode="gray")
     t0 = time.perf_counter()
     vocab = _match(db, work, names, cfg, report)
     timings["match_s"] = time.perf_counter() - t0

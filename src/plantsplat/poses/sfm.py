@@ -141,6 +141,14 @@ def extract_features(image_dir: Path, names: list[str], work_dir: Path, opts: Sf
     return db
 
 
+def extracted_names(db: Path) -> set[str]:
+    """The frames the database holds: COLMAP leaves out, without a word, a frame it cannot read."""
+    import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
+
+    with pycolmap.Database.open(str(db)) as d:
+        return {im.name for im in d.read_all_images()}
+
+
 def _matching_options(opts: SfmConfig):
     """pycolmap's matching and two-view verification options for ``opts`` (one thread, seeded RANSAC)."""
     import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
