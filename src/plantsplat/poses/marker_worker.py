@@ -43,7 +43,8 @@ def cube_json(cube: CubeSpec) -> str:
 def main(argv: list[str]) -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     die_with_parent()
-    os.nice(LOWEST_PRIORITY)
+    if hasattr(os, "nice"):  # not on Windows
+        os.nice(LOWEST_PRIORITY)
     images, names, out = Path(argv[0]), Path(argv[1]).read_text().splitlines(), Path(argv[3])
     spec = json.loads(argv[2])
     cube = CubeSpec(**{**spec, "face_ids": tuple(spec["face_ids"])})
