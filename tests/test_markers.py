@@ -98,6 +98,11 @@ def test_markers_file_roundtrip(tmp_path):
     back = read_markers(tmp_path / "markers.json")
     assert back.names == m.names and back.edge_shift_px == 0.4 and back.shift_samples == 5
     assert np.allclose(back.frames["frame_00000.png"][0], CORNERS, atol=1e-4)
+    other = CubeSpec(size=12.0, marker_size=11.0, dictionary="DICT_5X5_50", face_ids=(6, 7, 8, 9, 10, 11))
+    write_markers(tmp_path / "other.json", m, other)
+    from plantsplat.markers import recorded_cube
+
+    assert recorded_cube(tmp_path / "other.json") == other and CubeSpec.from_record(CubeSpec().record()) == CubeSpec()
     (tmp_path / "bad.json").write_text('{"frames": 3}')
     from plantsplat.errors import PlantsplatError
 

@@ -97,6 +97,18 @@ class CubeSpec:
         """Vertex indices (into :meth:`corners`) of the 6 faces, counter-clockwise seen from outside."""
         return [[1, 3, 7, 5], [0, 4, 6, 2], [2, 6, 7, 3], [0, 1, 5, 4], [4, 5, 7, 6], [0, 2, 3, 1]]
 
+    def record(self) -> dict:
+        """The cube's own fields as plain values (``markers.json``'s ``cube``); :meth:`from_record` reads them back."""
+        return {"size": self.size, "marker_size": self.marker_size, "dictionary": self.dictionary,
+                "face_ids": list(self.face_ids)}
+
+    @classmethod
+    def from_record(cls, c: dict) -> CubeSpec:
+        """The cube of a :meth:`record` (the dictionary and ids default to the standard cube's where absent)."""
+        return cls(size=float(c["size"]), marker_size=float(c["marker_size"]),
+                   dictionary=str(c.get("dictionary", cls.dictionary)),
+                   face_ids=tuple(int(i) for i in c.get("face_ids", cls.face_ids)))
+
     def aruco_dictionary(self):
         import cv2  # deferred: OpenCV is slow to load, and the CLI imports this module (for CubeSpec)
 

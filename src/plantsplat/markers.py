@@ -230,8 +230,7 @@ def write_markers(path: Path, markers: Markers, cube: CubeSpec) -> None:
     """``markers.json``: the cube, the edge shift and every frame's corrected corners."""
     write_json_atomic(path, {
         "version": MARKERS_VERSION,
-        "cube": {"size": cube.size, "marker_size": cube.marker_size, "dictionary": cube.dictionary,
-                 "face_ids": list(cube.face_ids)},
+        "cube": cube.record(),
         "edge_shift_px": markers.edge_shift_px,
         "shift_samples": markers.shift_samples,
         "names": markers.names,
@@ -250,9 +249,7 @@ def recorded_cube(path: Path) -> CubeSpec | None:
     if c is None:
         return None
     try:
-        return CubeSpec(size=float(c["size"]), marker_size=float(c["marker_size"]),
-                        dictionary=str(c.get("dictionary", CubeSpec.dictionary)),
-                        face_ids=tuple(int(i) for i in c.get("face_ids", CubeSpec.face_ids)))
+        return CubeSpec.from_record(c)
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise PlantsplatError(f"{path}: the cube's record is unreadable ({exc}); re-run `plantsplat poses`") from exc
 

@@ -1,9 +1,9 @@
 """The marker detection process of :func:`plantsplat.poses.stage.start_markers`: ``python -m
 plantsplat.poses.marker_worker IMAGES NAMES CUBE OUT``, where ``IMAGES`` is the frames' folder, ``NAMES`` a file of
-frame names (one per line), ``CUBE`` the cube as JSON (:func:`cube_json`) and ``OUT`` the file it writes the
-:class:`~plantsplat.markers.Markers` into (pickled, so the corners are exactly those of a detection in the stage's
-own process), with the seconds the detection took. A frame it cannot read ends it with that frame's one-line error
-and its exit code in ``OUT.error.json``.
+frame names (one per line), ``CUBE`` the cube as JSON (:meth:`~plantsplat.cube.CubeSpec.record`) and ``OUT`` the
+file it writes the :class:`~plantsplat.markers.Markers` into (pickled, so the corners are exactly those of a
+detection in the stage's own process), with the seconds the detection took. A frame it cannot read ends it with that
+frame's one-line error and its exit code in ``OUT.error.json``.
 
 It runs at the lowest priority (nice 19), beside structure from motion: it takes the cycles that the stage's
 one-thread steps (learning the vocabulary, mapping's end, the bundle adjustments) leave idle, and hardly any from
@@ -34,20 +34,13 @@ def error_file(out: Path) -> Path:
     return out.with_name(out.name + ".error.json")
 
 
-def cube_json(cube: CubeSpec) -> str:
-    """The cube's own fields as JSON, for the process's command line."""
-    return json.dumps({"size": cube.size, "marker_size": cube.marker_size, "dictionary": cube.dictionary,
-                       "face_ids": list(cube.face_ids)})
-
-
 def main(argv: list[str]) -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     die_with_parent()
     if hasattr(os, "nice"):  # not on Windows
         os.nice(LOWEST_PRIORITY)
     images, names, out = Path(argv[0]), Path(argv[1]).read_text().splitlines(), Path(argv[3])
-    spec = json.loads(argv[2])
-    cube = CubeSpec(**{**spec, "face_ids": tuple(spec["face_ids"])})
+    cube = CubeSpec.from_record(json.loads(argv[2]))
     t0 = time.perf_counter()
     try:
         markers = detect_frames(images, names, cube)

@@ -21,6 +21,7 @@ Usage:
 
 from __future__ import annotations
 
+import json
 import pickle
 import subprocess
 import time
@@ -45,7 +46,7 @@ from plantsplat.poses.estimate import (
     shown_names,
 )
 from plantsplat.poses.interop import registered_images, write_colmap, write_points_ply, write_transforms
-from plantsplat.poses.marker_worker import cube_json, error_file
+from plantsplat.poses.marker_worker import error_file
 from plantsplat.poses.sfm import MAP_THREADS, colmap_logging, n_threads_env, spawn_worker, worker_said
 from plantsplat.pycolmap_loader import load_pycolmap
 from plantsplat.workspace import Workspace
@@ -208,7 +209,7 @@ def start_markers(ws: Workspace, names: list[str], cube: CubeSpec) -> subprocess
     here.mkdir(parents=True)
     (here / "names.txt").write_text("".join(f"{n}\n" for n in names))
     return spawn_worker("plantsplat.poses.marker_worker", [str(ws.images_dir.resolve()), str(here / "names.txt"),
-                                                            cube_json(cube), str(here / MARKERS_FILE)], here)
+                                                            json.dumps(cube.record()), str(here / MARKERS_FILE)], here)
 
 
 def finish_markers(ws: Workspace, proc: subprocess.Popen, cube: CubeSpec, report: dict) -> Markers:

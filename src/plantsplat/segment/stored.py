@@ -51,9 +51,7 @@ def save_object(ws: Workspace, obj) -> None:
     with atomic_path(path, suffix=".npz") as tmp:
         parts = {} if obj.part is None else {"part": obj.part}
         np.savez(tmp, plant=obj.plant, axis=obj.axis, up=obj.up, info=json.dumps(obj.info), **parts,
-                 cube=json.dumps(None if obj.cube is None else {"size": obj.cube.size, "marker_size": obj.cube.marker_size,
-                                                                "dictionary": obj.cube.dictionary,
-                                                                "face_ids": list(obj.cube.face_ids)}))
+                 cube=json.dumps(None if obj.cube is None else obj.cube.record()))
 
 
 def load_object(ws: Workspace):
@@ -65,7 +63,7 @@ def load_object(ws: Workspace):
     params, _ = load_model(ws, scene_dir(ws))
     cube = json.loads(str(data["cube"]))
     obj = ObjectModel(params={k: v.detach().cpu() for k, v in params.items()}, plant=data["plant"],
-                      cube=None if cube is None else CubeSpec(**{**cube, "face_ids": tuple(cube["face_ids"])}),
+                      cube=None if cube is None else CubeSpec.from_record(cube),
                       axis=data["axis"], up=data["up"], info=json.loads(str(data["info"])),
                       part=data["part"] if "part" in data.files else None)
     return obj, {v.name: v for v in load_scene(ws, need_masks=False, load_images=False).views}
