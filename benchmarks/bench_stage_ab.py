@@ -11,12 +11,16 @@ time. A change made for speed must give the same result, which is compared:
 - ``--stage train`` (a workspace after ``plantsplat segment``): the training loop's seconds (``metrics.json``
   ``train_seconds``; the rest of the wall time is loading the frames and scoring the test views) and the test
   views' metrics. Each tree first runs once untimed: its first run compiles its numba kernels.
+- ``--stage run`` (``--source``: a video): ``plantsplat run`` on it into a fresh workspace, every stage's seconds
+  (``run.json``) and the traits. With ``--cold`` each run starts with an empty numba cache (``NUMBA_CACHE_DIR``), as
+  the first run after an install does; without it each tree first runs once untimed.
 
 Writes ``benchmarks/results/<stage>_ab.json`` with machine information and the date.
 
 Usage:
     .venv/bin/python benchmarks/bench_stage_ab.py --stage poses --ref 0d03586 --workspace WS
     .venv/bin/python benchmarks/bench_stage_ab.py --stage train --ref 9e9de32 --workspace WS
+    .venv/bin/python benchmarks/bench_stage_ab.py --stage run --cold --ref 1be0634 --source capture/video.mp4
 """
 
 from __future__ import annotations
@@ -42,14 +46,14 @@ METRIC_KEYS = (("composite", "psnr"), ("composite", "ssim"), ("composite", "lpip
                ("foreground", "ssim"), ("foreground", "lpips"), ("mask_agreement", "iou"))
 
 
-def _run(src: Path, args: list[str]) -> float:
+def _run(src: Path, args: list[str], env_extra: dict | None = None) -> float:
     """``plantsplat ARGS`` with the package in ``src``, in a process of its own; its wall seconds. Both trees score
     LPIPS with this tree's weights (the reference's worktree is not beside ``../shared``, where they are looked for)."""
     from plantsplat.train.metrics import default_lpips_weights
 
     weights = default_lpips_weights()
     env = {**os.environ, "PYTHONPATH": str(src), "PLANTSPLAT_NO_PROGRESS": "1",
-           **({"PLANTSPLAT_LPIPS_WEIGHTS": str(weights)} if weights else {})}
+           **({"PLANTSPLAT_LPIPS_WEIGHTS": str(weights)} if weights else {}), **(env_extra or {})}
     where = subprocess.run([sys.executable, "-c", "import plantsplat; print(plantsplat.__file__)"], env=env,
                            capture_output=True, text=True).stdout.strip()
     if not where.startswith(str(src)):
@@ -96,6 +100,24 @@ def run_train(src: Path, ws: Path, work: Path) -> dict:
             "result": {f"{a}.{b}": m[a][b] for a, b in METRIC_KEYS}}
 
 
+TRAIT_KEYS = ("height_cm", "width1_cm", "width2_cm", "canopy_volume_cm3", "canopy_area_cm2")
+
+
+def run_run(src: Path, source: Path, work: Path, cold: bool) -> dict:
+    """``plantsplat run`` with the package in ``src`` on the video ``source`` into an empty workspace (with ``cold``,
+    and an empty numba cache): wall time, every stage's seconds, the traits."""
+    if work.exists():
+        shutil.rmtree(work)
+    work.mkdir(parents=True)
+    env = {"NUMBA_CACHE_DIR": str(work / "numba_cache")} if cold else None
+    wall = _run(src, ["run", str(source), "--out", str(work / "ws")], env)
+    rec = json.loads((work / "ws" / "run.json").read_text())
+    traits = json.loads((work / "ws" / "traits.json").read_text())
+    return {"wall_seconds": round(wall, 1), "stage_seconds": rec["total_seconds"],
+            "stages": {k: v.get("seconds") for k, v in rec["stages"].items()},
+            "result": {k: traits[k] for k in TRAIT_KEYS}}
+
+
 def _difference(a: dict, b: dict) -> float | None:
     """The largest difference between two runs' results (cameras' matrix entries, or metrics); None when the poses
     registered different frames, infinite when a metric is missing from one run only."""
@@ -111,14 +133,22 @@ def main() -> None:
     from plantsplat.resources import machine_info
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--stage", choices=("poses", "train"), required=True)
+    ap.add_argument("--stage", choices=("poses", "train", "run"), required=True)
     ap.add_argument("--ref", required=True, help="the earlier commit (any git revision)")
-    ap.add_argument("--workspace", type=Path, required=True,
+    ap.add_argument("--workspace", type=Path, default=None,
                     help="poses: a workspace after `plantsplat frames`; train: one after `plantsplat segment`")
+    ap.add_argument("--source", type=Path, default=None, help="run: the video")
+    ap.add_argument("--cold", action="store_true", help="run: every run with an empty numba cache")
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--out", type=Path, default=None, help="default benchmarks/results/<stage>_ab.json")
     args = ap.parse_args()
-    run = {"poses": run_poses, "train": run_train}[args.stage]
+    if (args.stage == "run") != (args.source is not None) or (args.stage != "run") == (args.workspace is None):
+        raise SystemExit("--stage run takes --source, the others --workspace")
+    if args.stage == "run":
+        def run(src, _ws, work):
+            return run_run(src, args.source.resolve(), work, args.cold)
+    else:
+        run = {"poses": run_poses, "train": run_train}[args.stage]
     info = machine_info()
     start = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout
@@ -130,7 +160,8 @@ def main() -> None:
             rows, results = [], {}
             if not (ref_tree / "src" / "plantsplat").is_dir():
                 raise SystemExit(f"{args.ref}: no src/plantsplat in that commit")
-            if args.stage == "train":  # a tree's first run compiles its numba kernels: one run each, not timed
+            if args.stage == "train" or (args.stage == "run" and not args.cold):  # a tree's first run compiles its
+                # numba kernels: one run each, not timed
                 for label, src in (("ref", ref_tree / "src"), ("this", ROOT / "src")):
                     run(src, args.workspace, Path(tmp) / "runs" / label)
             for k in range(args.rounds):
@@ -143,9 +174,10 @@ def main() -> None:
             subprocess.run(["git", "worktree", "remove", "--force", str(ref_tree)], cwd=ROOT, capture_output=True)
     med = {c: float(np.median([r["stage_seconds"] for r in rows if r["code"] == c])) for c in ("ref", "this")}
     result = {"benchmark": f"{args.stage}_ab", "date": start, "machine": {**info, "loadavg_end": list(os.getloadavg())},
-              "ref": args.ref, "this": head.strip() or None, "workspace": str(args.workspace), "runs": rows,
+              "ref": args.ref, "this": head.strip() or None, "workspace": str(args.workspace or args.source),
+              "cold_numba_cache": args.cold, "runs": rows,
               "results": {c: {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in r.items()}
-                          for c, r in results.items()} if args.stage == "train" else None,
+                          for c, r in results.items()} if args.stage != "poses" else None,
               "summary": {"stage_seconds_median": med, "saved_seconds": round(med["ref"] - med["this"], 1),
                           "largest_difference": _difference(results["ref"], results["this"])}}
     out = args.out or RESULTS / f"{args.stage}_ab.json"

@@ -496,9 +496,9 @@ def test_a_matching_process_ends_with_the_stage_that_started_it(tmp_path):
     import subprocess
     import time
 
-    from plantsplat.poses.sfm import PARENT_ENV
+    from plantsplat.workers import PARENT_ENV
 
-    child = ("import time; from plantsplat.poses.match_worker import die_with_parent; die_with_parent(); "
+    child = ("import time; from plantsplat.workers import die_with_parent; die_with_parent(); "
              "time.sleep(60)")
     stage = (f"import os, subprocess, sys, time; env = {{**os.environ, {PARENT_ENV!r}: str(os.getpid())}}; "
              f"p = subprocess.Popen([sys.executable, '-c', {child!r}], env=env); print(p.pid, flush=True); "

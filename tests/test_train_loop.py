@@ -446,3 +446,28 @@ def test_occluders_from_sfm_points_resume_and_stay_out_of_the_export(synth_captu
     model_export.run(ws)
     g = read_splat_ply(ws.splat_ply)
     assert len(g["means"]) == s["n_gaussians"] == model["params"]["means"].shape[0]
+
+
+def test_the_warmup_reaches_every_kernel_signature_the_stages_use(synth_capture, tmp_path):
+    """plantsplat.train.warmup compiles the CPU kernels before a run needs them: only if it calls each with the
+    argument types the stages use does the stage find it cached. After the warm-up, an object-mode training with its
+    crops, occluder path and evaluation, a full-mode training and the segment stage's priors add no signature
+    (tests/warmup_coverage.py; with the object-mode part of the warm-up taken out it lists the training kernels)."""
+    import json
+    import subprocess
+    import sys
+
+    ws = synth_workspace(synth_capture(), tmp_path / "ws")
+    script = Path(__file__).with_name("warmup_coverage.py")
+    out = subprocess.run([sys.executable, str(script), str(ws.root)], capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == {}
+
+
+def test_the_kernel_warmup_starts_once_per_process_and_ends_by_itself():
+    """`plantsplat run` and `plantsplat demo` both start the warm-up; a demo (which runs the pipeline) starts one."""
+    from plantsplat.pipeline import start_kernel_warmup
+
+    first = start_kernel_warmup()
+    assert start_kernel_warmup() is first
+    assert first.wait(timeout=900) == 0

@@ -16,6 +16,7 @@ Usage:
 from __future__ import annotations
 
 import dataclasses
+import subprocess
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,9 +39,13 @@ from plantsplat.segment.config import SegmentConfig
 from plantsplat.stages import read_record, require_ok, run_stage
 from plantsplat.train.config import TrainConfig
 from plantsplat.traits.config import TraitsConfig
+from plantsplat.workers import spawn_worker
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
+
+WARMUP_MODULE = "plantsplat.train.warmup"
+_warmup: list[subprocess.Popen] = []  # this process's kernel warm-up (start_kernel_warmup)
 
 
 @dataclass
@@ -206,11 +211,21 @@ def run_pipeline(source: str | Path | None, ws_root: str | Path, cfg: RunConfig,
     fails stops the run with its error; what the stages before it wrote is kept.
     """
     check_run(source, ws_root, cfg)  # inputs, option values and the workspace, before any stage runs
+    start_kernel_warmup()
     ws = Workspace(ws_root)
     ws.root.mkdir(parents=True, exist_ok=True)
     with workspace_lock(ws.root):  # one process at a time on a workspace
         _run_stages(ws, Path(source) if source is not None else None, cfg, force)
     return summarize_workspace(ws)
+
+
+def start_kernel_warmup() -> subprocess.Popen:
+    """Start the kernel warm-up process (:mod:`plantsplat.train.warmup`: it compiles the CPU kernels at the lowest
+    priority, in the cycles the first stages leave idle) once per process, and return it; nothing waits for it."""
+    if not _warmup:
+        _warmup.append(spawn_worker(WARMUP_MODULE, [], None))
+    _warmup[0].poll()  # reaps it once it has ended
+    return _warmup[0]
 
 
 def _run_stages(ws: Workspace, src: Path | None, cfg: RunConfig, force: bool) -> None:

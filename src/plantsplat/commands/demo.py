@@ -12,7 +12,7 @@ from plantsplat.commands import Command
 from plantsplat.errors import EXIT_RESULT_FAILED, PlantsplatError
 from plantsplat.io import read_json
 from plantsplat.log import console, get_logger
-from plantsplat.pipeline import RunConfig, run_pipeline
+from plantsplat.pipeline import RunConfig, run_pipeline, start_kernel_warmup
 from plantsplat.summary import print_summary
 from plantsplat.synth import SynthConfig, generate
 
@@ -60,6 +60,7 @@ def run(cfg: DemoCommand) -> int:
             raise PlantsplatError(
                 f"{capture}: holds a different capture; choose another --out or delete that folder", exit_code=2
             )
+        start_kernel_warmup()  # the training's kernels compile beside the rendering
         log.info("rendering the sample capture (seed %d, %d frames, %dx%d)", cfg.capture_seed, cfg.capture_frames,
                  cfg.capture_width, cfg.capture_height)
         generate(SynthConfig(seed=cfg.capture_seed, out=capture, frames=cfg.capture_frames, width=cfg.capture_width,

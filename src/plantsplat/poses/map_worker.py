@@ -7,17 +7,15 @@ Ctrl-C is left to the stage, which stops it."""
 from __future__ import annotations
 
 import json
-import signal
 import sys
 from pathlib import Path
 
-from plantsplat.poses.match_worker import die_with_parent
 from plantsplat.poses.sfm import MAPPED_DIR, SfmConfig, global_then_incremental, write_models
+from plantsplat.workers import worker_start
 
 
 def main(argv: list[str]) -> int:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    die_with_parent()
+    worker_start()
     db, images, out = Path(argv[0]), Path(argv[1]), Path(argv[2])
     opts = SfmConfig(**json.loads(argv[3]))
     write_models(global_then_incremental(db, images, out / "run", opts), out / MAPPED_DIR, opts.verbose)

@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import os
 import pickle
-import signal
 import sys
 import time
 from pathlib import Path
@@ -23,10 +22,7 @@ from plantsplat.cube import CubeSpec
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import write_json_atomic
 from plantsplat.markers import detect_frames
-from plantsplat.poses.match_worker import die_with_parent
-
-LOWEST_PRIORITY = 19
-"""The niceness the process takes (the lowest priority on Linux and macOS)."""
+from plantsplat.workers import worker_start
 
 
 def error_file(out: Path) -> Path:
@@ -35,10 +31,7 @@ def error_file(out: Path) -> Path:
 
 
 def main(argv: list[str]) -> int:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    die_with_parent()
-    if hasattr(os, "nice"):  # not on Windows
-        os.nice(LOWEST_PRIORITY)
+    worker_start(lowest_priority=True)
     images, names, out = Path(argv[0]), Path(argv[1]).read_text().splitlines(), Path(argv[3])
     cube = CubeSpec.from_record(json.loads(argv[2]))
     t0 = time.perf_counter()

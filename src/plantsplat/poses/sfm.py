@@ -21,17 +21,16 @@ import os
 import shutil
 import sqlite3
 import subprocess
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-import plantsplat
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import native_stderr_silenced
 from plantsplat.log import get_logger
+from plantsplat.workers import WORKER_LOG, spawn_worker, worker_said
 
 log = get_logger(__name__)
 
@@ -53,11 +52,6 @@ matches every time, at about 1.4 times the matching time (22 s instead of 15 s f
 runs several one-thread processes instead."""
 MIN_PAIRS_PER_WORKER = 50
 """Pairs below which another matching process costs more (start-up, a database copy) than it saves."""
-PARENT_ENV = "PLANTSPLAT_WORKER_PARENT"
-"""Environment variable giving a worker process (matching, global mapping) the process id of the stage that started
-it."""
-WORKER_LOG = "log.txt"
-"""A worker process's output, in its folder."""
 MAPPED_DIR = "models"
 """Where the global mapping process leaves its models, one numbered folder each, largest first."""
 WORKER_POLL_S = 0.2
@@ -252,23 +246,6 @@ def _start_worker(db: Path, part: Path, pairs: list[tuple[str, str]], opts: SfmC
     here = part.resolve()
     return spawn_worker("plantsplat.poses.match_worker", [str(here / "database.db"), str(here / "pairs.txt"),
                                                           json.dumps(dataclasses.asdict(opts))], here)
-
-
-def spawn_worker(module: str, args: list[str], here: Path) -> subprocess.Popen:
-    """``python -m module args`` running this process's plantsplat (its folder first on the worker's path), in the
-    folder ``here`` (nothing of the caller's folder on its path), its output in ``here/log.txt``; it ends with this
-    process (:data:`PARENT_ENV`)."""
-    env = {**os.environ, PARENT_ENV: str(os.getpid()), "PYTHONPATH": os.pathsep.join(
-        x for x in (str(Path(plantsplat.__file__).resolve().parents[1]), os.environ.get("PYTHONPATH")) if x)}
-    with open(here / WORKER_LOG, "wb") as log_file:
-        return subprocess.Popen([sys.executable, "-m", module, *args], env=env, stdin=subprocess.DEVNULL,
-                                stdout=log_file, stderr=subprocess.STDOUT, cwd=here)
-
-
-def worker_said(here: Path) -> str:
-    """The last line a worker process wrote in its folder ``here``, and where the rest is."""
-    lines = (here / WORKER_LOG).read_text(errors="replace").strip().splitlines() or ["no message"]
-    return f"{lines[-1]}; see {here / WORKER_LOG}"
 
 
 def write_pairs(path: Path, pairs: list[tuple[str, str]]) -> None:

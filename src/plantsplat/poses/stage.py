@@ -47,8 +47,9 @@ from plantsplat.poses.estimate import (
 )
 from plantsplat.poses.interop import registered_images, write_colmap, write_points_ply, write_transforms
 from plantsplat.poses.marker_worker import error_file
-from plantsplat.poses.sfm import MAP_THREADS, colmap_logging, n_threads_env, spawn_worker, worker_said
+from plantsplat.poses.sfm import MAP_THREADS, colmap_logging, n_threads_env
 from plantsplat.pycolmap_loader import load_pycolmap
+from plantsplat.workers import spawn_worker, worker_said
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
