@@ -3,7 +3,10 @@ mode, metrics are written, export round-trips, an interrupted run resumes, bad i
 
 from __future__ import annotations
 
+import json
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +14,7 @@ import pytest
 
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_json, write_json_atomic
+from plantsplat.pipeline import start_kernel_warmup
 from plantsplat.train.checkpoint import load_model
 from plantsplat.train.config import TrainConfig
 from plantsplat.workspace import Workspace
@@ -453,10 +457,6 @@ def test_the_warmup_reaches_every_kernel_signature_the_stages_use(synth_capture,
     argument types the stages use does the stage find it cached. After the warm-up, an object-mode training with its
     crops, occluder path and evaluation, a full-mode training and the segment stage's priors add no signature
     (tests/warmup_coverage.py; with the object-mode part of the warm-up taken out it lists the training kernels)."""
-    import json
-    import subprocess
-    import sys
-
     ws = synth_workspace(synth_capture(), tmp_path / "ws")
     script = Path(__file__).with_name("warmup_coverage.py")
     out = subprocess.run([sys.executable, str(script), str(ws.root)], capture_output=True, text=True, timeout=900)
@@ -466,8 +466,6 @@ def test_the_warmup_reaches_every_kernel_signature_the_stages_use(synth_capture,
 
 def test_the_kernel_warmup_starts_once_per_process_and_ends_by_itself():
     """`plantsplat run` and `plantsplat demo` both start the warm-up; a demo (which runs the pipeline) starts one."""
-    from plantsplat.pipeline import start_kernel_warmup
-
     first = start_kernel_warmup()
     assert start_kernel_warmup() is first
     assert first.wait(timeout=900) == 0
