@@ -14,6 +14,7 @@ import pytest
 
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_json, write_json_atomic
+from plantsplat.kernel_cache import kernels_cached, mark_kernels_cached
 from plantsplat.pipeline import start_kernel_warmup
 from plantsplat.train.checkpoint import load_model
 from plantsplat.train.config import TrainConfig
@@ -464,8 +465,28 @@ def test_the_warmup_reaches_every_kernel_signature_the_stages_use(synth_capture,
     assert json.loads(out.stdout.strip().splitlines()[-1]) == {}
 
 
-def test_the_kernel_warmup_starts_once_per_process_and_ends_by_itself():
-    """`plantsplat run` and `plantsplat demo` both start the warm-up; a demo (which runs the pipeline) starts one."""
+def test_the_kernel_warmup_starts_once_per_process_and_leaves_its_stamp(monkeypatch):
+    """Where the kernels are not known to be cached, `plantsplat run` and `plantsplat demo` start the warm-up (a demo,
+    which runs the pipeline, starts one); it ends by itself and leaves the stamp that keeps later runs from starting
+    it."""
+    from plantsplat import pipeline
+
+    monkeypatch.setattr(pipeline, "kernels_cached", lambda: False)
     first = start_kernel_warmup()
-    assert start_kernel_warmup() is first
+    assert first is not None and start_kernel_warmup() is first
     assert first.wait(timeout=900) == 0
+    assert kernels_cached()
+
+
+def test_the_kernel_stamp_belongs_to_one_numba_cache_and_one_version_of_the_kernels(tmp_path, monkeypatch):
+    from plantsplat import kernel_cache
+
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
+    assert not kernels_cached()
+    mark_kernels_cached()
+    assert kernels_cached()
+    monkeypatch.setattr(kernel_cache, "KERNEL_MODULES", kernel_cache.KERNEL_MODULES[:-1])  # other kernel sources
+    assert not kernels_cached()
+    monkeypatch.undo()
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "emptied"))  # the cache deleted, or another one
+    assert not kernels_cached()

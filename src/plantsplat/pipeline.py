@@ -29,6 +29,7 @@ from plantsplat.export.config import ExportConfig
 from plantsplat.frames.config import FramesConfig
 from plantsplat.groundtruth import compare_traits, load_ground_truth
 from plantsplat.io import read_json, write_json_atomic
+from plantsplat.kernel_cache import kernels_cached
 from plantsplat.lock import workspace_lock
 from plantsplat.log import get_logger
 from plantsplat.options import check_options
@@ -219,10 +220,13 @@ def run_pipeline(source: str | Path | None, ws_root: str | Path, cfg: RunConfig,
     return summarize_workspace(ws)
 
 
-def start_kernel_warmup() -> subprocess.Popen:
-    """Start the kernel warm-up process (:mod:`plantsplat.train.warmup`: it compiles the CPU kernels at the lowest
-    priority, in the cycles the first stages leave idle) once per process, and return it; nothing waits for it."""
+def start_kernel_warmup() -> subprocess.Popen | None:
+    """Start the kernel warm-up process (:mod:`plantsplat.train.warmup`: it compiles the CPU kernels beside the first
+    stages) once per process, where numba's cache is not known to hold them (:mod:`plantsplat.kernel_cache`); return
+    it, or None where the kernels are cached. Nothing waits for it."""
     if not _warmup:
+        if kernels_cached():
+            return None
         _warmup.append(spawn_worker(WARMUP_MODULE, [], None))
     _warmup[0].poll()  # reaps it once it has ended
     return _warmup[0]

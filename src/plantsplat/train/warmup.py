@@ -2,13 +2,13 @@
 
 numba compiles the rasterizer's and the loss's kernels the first time a process calls them and keeps them in its
 cache on disk; later processes load them. The first run after an install therefore compiled them inside the segment
-stage, on one core while the other waited: that stage took 123 s instead of 56 s on the demo's capture (2-core AMD
-EPYC, 2026-11-30). ``plantsplat run`` and ``plantsplat demo`` start this process when they begin
-(:func:`plantsplat.pipeline.start_kernel_warmup`), at the lowest priority: it compiles the kernels in the cycles the
-frames and poses stages leave idle, and with every kernel already cached it only loads them (a few seconds of one
-core). It is never waited for: a stage that reaches a kernel before this process has cached it compiles that kernel
-itself, as it would without it. A kernel compiled here is the one the stage would have compiled, bit for bit (the
-flags of :mod:`plantsplat.raster.numba_config`; ``tests/test_raster.py`` compares a fresh kernel with a cached one).
+stage, on one core while the other waited: that stage took 120 s instead of 57 s on the demo's capture (2-core AMD
+EPYC, 2026-11-30). Where the kernels are not known to be cached (:mod:`plantsplat.kernel_cache`), ``plantsplat run``
+and ``plantsplat demo`` start this process when they begin (:func:`plantsplat.pipeline.start_kernel_warmup`): it
+compiles the kernels beside the frames and poses stages and then leaves the stamp that says they are cached. It is
+never waited for: a stage that reaches a kernel before this process has cached it compiles that kernel itself, as
+it would without it. A kernel compiled here is the one the stage would have compiled, bit for bit (the flags of
+:mod:`plantsplat.raster.numba_config`; ``tests/test_raster.py`` compares a fresh kernel with a cached one).
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import sys
 import numpy as np
 import torch
 
+from plantsplat.kernel_cache import mark_kernels_cached
 from plantsplat.raster.cpu_projection import project_cpu
 from plantsplat.train.loss import photometric_loss
 from plantsplat.train.metrics import scored_ssim_map
@@ -65,9 +66,10 @@ def compile_kernels() -> None:
 
 
 def main(argv: list[str]) -> int:
-    worker_start(lowest_priority=True)
+    worker_start()
     torch.set_num_threads(1)
     compile_kernels()
+    mark_kernels_cached()
     return 0
 
 

@@ -1,0 +1,52 @@
+"""Whether numba's cache holds this version's CPU kernels, told without loading numba or torch.
+
+The kernel warm-up (:mod:`plantsplat.train.warmup`) leaves a stamp when it has compiled or loaded every kernel: a
+file named by a digest of the kernel modules' sources, numba's version and Python's, next to numba's cache of them
+(``NUMBA_CACHE_DIR``, else the ``raster/__pycache__`` folder numba writes into). Deleting the cache deletes the stamp;
+a change to a kernel, numba or Python names another stamp. ``plantsplat run`` starts the warm-up only where the stamp
+is missing, and then at normal priority: on a cold cache the compiling is worth the cycles it takes from the first
+stages, and on a warm one nothing is started.
+
+Usage:
+    if not kernels_cached():
+        ...  # start the warm-up; it calls mark_kernels_cached() at its end
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import sys
+from importlib import metadata
+from pathlib import Path
+
+import plantsplat
+
+KERNEL_MODULES = ("cpu.py", "cpu_projection.py", "sh_cpu.py", "ssim.py", "numba_config.py")
+"""The files of ``plantsplat/raster/`` whose kernels numba caches (``numba_config``: the flags they share)."""
+
+
+def _stamp() -> Path:
+    """Where this version's stamp is (it may not exist)."""
+    raster = Path(plantsplat.__file__).resolve().parent / "raster"
+    h = hashlib.sha256(f"{metadata.version('numba')} {sys.version_info[:3]}".encode())
+    for name in KERNEL_MODULES:
+        h.update((raster / name).read_bytes())
+    folder = Path(os.environ["NUMBA_CACHE_DIR"]) if os.environ.get("NUMBA_CACHE_DIR") else raster / "__pycache__"
+    return folder / f"plantsplat-kernels-{h.hexdigest()[:16]}.stamp"
+
+
+def kernels_cached() -> bool:
+    """Whether the warm-up has cached this version's kernels (see the module's docstring)."""
+    return _stamp().is_file()
+
+
+def mark_kernels_cached() -> None:
+    """Leave the stamp; where numba's cache folder cannot be written (numba then caches elsewhere) none is left, and
+    the next run warms up again."""
+    stamp = _stamp()
+    try:
+        stamp.parent.mkdir(parents=True, exist_ok=True)
+        stamp.touch()
+    except OSError:
+        pass
