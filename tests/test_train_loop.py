@@ -456,7 +456,7 @@ def test_occluders_from_sfm_points_resume_and_stay_out_of_the_export(synth_captu
 def test_the_warmup_reaches_every_kernel_signature_the_stages_use(synth_capture, tmp_path):
     """plantsplat.train.warmup compiles the CPU kernels before a run needs them: only if it calls each with the
     argument types the stages use does the stage find it cached. After the warm-up, an object-mode training with its
-    crops, occluder path and evaluation, a full-mode training and the segment stage's priors add no signature
+    crops and evaluation, a full-mode training and the segment stage's priors add no signature
     (tests/warmup_coverage.py; with the object-mode part of the warm-up taken out it lists the training kernels)."""
     ws = synth_workspace(synth_capture(), tmp_path / "ws")
     script = Path(__file__).with_name("warmup_coverage.py")

@@ -3,6 +3,8 @@
 
 In one process: the warm-up first, then what the stages do on the CPU (an object-mode training with its crops and
 evaluation, a full-mode training like the segment stage's quick model, the segment stage's priors and footprints).
+The workspace has no SfM points, so its training has no occluders: their one kernel of their own (``_trim_tails``)
+is called by the warm-up, through the same ``render``, but not checked here.
 numba adds a signature to a kernel whenever it compiles or loads one; prints, as JSON, the signatures the stages'
 calls added after the warm-up (none when it reached them all)."""
 
