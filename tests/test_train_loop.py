@@ -490,3 +490,5 @@ def test_the_kernel_stamp_belongs_to_one_numba_cache_and_one_version_of_the_kern
     monkeypatch.undo()
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "emptied"))  # the cache deleted, or another one
     assert not kernels_cached()
+    monkeypatch.setattr(kernel_cache, "KERNEL_MODULES", ("no_such_module.py",))  # sources numba could not cache
+    assert kernels_cached()

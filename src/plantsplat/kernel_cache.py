@@ -37,15 +37,19 @@ def _stamp() -> Path:
 
 
 def kernels_cached() -> bool:
-    """Whether the warm-up has cached this version's kernels (see the module's docstring)."""
-    return _stamp().is_file()
+    """Whether the warm-up has cached this version's kernels (see the module's docstring). Where the kernels' sources
+    cannot be read, numba cannot cache them either, and there is nothing to warm up: True."""
+    try:
+        return _stamp().is_file()
+    except OSError:
+        return True
 
 
 def mark_kernels_cached() -> None:
     """Leave the stamp; where numba's cache folder cannot be written (numba then caches elsewhere) none is left, and
     the next run warms up again."""
-    stamp = _stamp()
     try:
+        stamp = _stamp()
         stamp.parent.mkdir(parents=True, exist_ok=True)
         stamp.touch()
     except OSError:
