@@ -46,6 +46,14 @@ def spawn_worker(module: str, args: list[str], here: Path | None) -> subprocess.
                                 cwd=here)
 
 
+def stop_worker(proc: subprocess.Popen | None) -> None:
+    """End a worker that still runs (Ctrl-C or an error in the stage: it does not go on); None or an ended one is
+    left as it is."""
+    if proc is not None and proc.poll() is None:
+        proc.kill()
+        proc.wait()
+
+
 def worker_said(here: Path) -> str:
     """The last line a worker process wrote in its folder ``here``, and where the rest is."""
     lines = (here / WORKER_LOG).read_text(errors="replace").strip().splitlines() or ["no message"]

@@ -66,6 +66,7 @@ from plantsplat.poses.sfm import (
     stop_matching,
     write_model,
 )
+from plantsplat.workers import stop_worker
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
@@ -147,9 +148,7 @@ def _mapped(db: Path, ws: Workspace, cfg: PosesConfig, mappers: list[str], repor
         if background is not None:
             models["global"] = finish_global_mapping(background, work / "global")
     finally:
-        if background is not None and background.poll() is None:  # an error or Ctrl-C here: the process goes too
-            background.kill()
-            background.wait()
+        stop_worker(background)  # an error or Ctrl-C here: the process goes too
     report["timings"]["map_s"] = report["timings"].get("map_s", 0.0) + time.perf_counter() - t0
     return models
 

@@ -30,7 +30,7 @@ import numpy as np
 from plantsplat.errors import PlantsplatError
 from plantsplat.io import native_stderr_silenced
 from plantsplat.log import get_logger
-from plantsplat.workers import WORKER_LOG, spawn_worker, worker_said
+from plantsplat.workers import WORKER_LOG, spawn_worker, stop_worker, worker_said
 
 log = get_logger(__name__)
 
@@ -217,9 +217,7 @@ def stop_matching(job: MatchJob) -> None:
     """End the job's processes that still run (Ctrl-C or an error: no worker goes on matching) and remove their
     copies of the database; a failed worker's log stays."""
     for proc in job.procs:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+        stop_worker(proc)
     for part in job.parts:
         for f in part.glob("database.db*"):
             f.unlink(missing_ok=True)

@@ -49,7 +49,7 @@ from plantsplat.poses.interop import registered_images, write_colmap, write_poin
 from plantsplat.poses.marker_worker import error_file
 from plantsplat.poses.sfm import MAP_THREADS, colmap_logging, n_threads_env
 from plantsplat.pycolmap_loader import load_pycolmap
-from plantsplat.workers import spawn_worker, worker_said
+from plantsplat.workers import spawn_worker, stop_worker, worker_said
 from plantsplat.workspace import Workspace
 
 log = get_logger(__name__)
@@ -124,9 +124,7 @@ def run(ws: Workspace | str | Path, cfg: PosesConfig | None = None) -> dict:
         if beside:
             markers = finish_markers(ws, beside, cube, report)
     finally:
-        if beside and beside.poll() is None:  # Ctrl-C or an error: the detection does not go on
-            beside.kill()
-            beside.wait()
+        stop_worker(beside)  # Ctrl-C or an error: the detection does not go on
     t0 = time.perf_counter()
     cal = calibrate_model(rec, markers, cube, cfg, sfm, report, [n for _, n in sorted(zip(times, names))], distortion)
     report["timings"]["calibrate_s"] = time.perf_counter() - t0
