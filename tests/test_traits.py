@@ -427,6 +427,40 @@ def test_extent_sampling_from_splat_ply(tmp_path):
     assert out["quality"] == "ok", out["quality_reasons"]
 
 
+def test_the_plant_alone_is_written_as_a_splat_of_its_own(tmp_path):
+    """plant.ply: the splat's rows whose Gaussians the measurement put on the plant, every column as it was; not the
+    cube, the floaters or the Gaussians below the opacity threshold. A measurement without plant Gaussians (a plain
+    point cloud) removes it."""
+    from plantsplat.cli import main
+    from plantsplat.ply import read_splat, read_vertices
+    from plantsplat.ply import write_splat as write_splat_ply
+
+    pts, cols, plant = make_plant_scene(seed=14, floaters=True)
+    keep = np.arange(len(pts)) % 3 == 0
+    pts, cols, plant = pts[keep], cols[keep], plant[keep]
+    n = len(pts)
+    faint = plant & (np.arange(n) % 50 == 0)  # plant Gaussians below the opacity threshold
+    sh0 = ((cols / 255.0) - 0.5) / 0.28209479177387814
+    ws = tmp_path / "ws"
+    splat = ws / "export" / "splat.ply"
+    write_splat_ply(splat, pts, np.log(np.full((n, 3), 0.05)), np.tile([1.0, 0, 0, 0], (n, 1)),
+                    np.where(faint, -4.0, 4.0), sh0[:, None, :], np.zeros((n, 3, 3)))
+    (ws / "poses.json").write_text(json.dumps({"scale_source": "aruco"}))
+    assert main(["traits", str(ws), "--no-figure"]) == 0
+    out = read_splat(ws / "plant.ply")
+    assert read_vertices(ws / "plant.ply").dtype == read_vertices(splat).dtype  # every column, as in the splat
+    rows = {tuple(p) for p in np.asarray(pts, np.float32)}
+    got = {tuple(p) for p in out["means"]}
+    wanted = {tuple(p) for p in np.asarray(pts[plant & ~faint], np.float32)}
+    assert got <= rows and got <= wanted  # no cube, floater or faint Gaussian
+    assert len(got) >= 0.98 * len(wanted)
+    assert np.all(out["opacities"] == 4.0) and out["shN"].shape == (len(got), 3, 3)
+    cloud = ws / "points.ply"
+    _write_points_ply(cloud, pts, cols, np.ones(n))
+    assert main(["traits", str(ws), "--points", str(cloud), "--no-figure"]) == 0
+    assert not (ws / "plant.ply").exists()
+
+
 def test_traits_command_unscaled_workspace_uses_cube_and_cameras(tmp_path):
     from plantsplat.cli import main
 

@@ -291,9 +291,9 @@ def summarize_workspace(ws: Workspace) -> dict:
             out[key] = read_json(path)
     out["outputs"] = {
         name: str(p)
-        for name, p in [("splat", ws.splat_ply), ("points", ws.points_ply), ("traits", ws.traits_json),
-                        ("traits_csv", ws.traits_csv), ("traits_figure", ws.traits_png), ("transforms", ws.transforms_json),
-                        ("colmap", ws.sparse_dir), ("report", ws.report_html)]
+        for name, p in [("splat", ws.splat_ply), ("points", ws.points_ply), ("plant", ws.plant_ply),
+                        ("traits", ws.traits_json), ("traits_csv", ws.traits_csv), ("traits_figure", ws.traits_png),
+                        ("transforms", ws.transforms_json), ("colmap", ws.sparse_dir), ("report", ws.report_html)]
         if p.exists()
     }
     return out

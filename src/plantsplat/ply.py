@@ -142,6 +142,12 @@ def read_splat(path: str | os.PathLike, hint: str = "export it with `plantsplat 
     }
 
 
+def write_splat_rows(path: str | os.PathLike, source: str | os.PathLike, rows: np.ndarray) -> None:
+    """The rows ``rows`` of the splat PLY ``source``, every column as it is there, as a PLY of their own (atomically)."""
+    v = read_vertices(source, "export it with `plantsplat export`")[np.asarray(rows, np.int64)]
+    write_vertices(path, {name: v[name] for name in v.dtype.names})
+
+
 def is_splat(path: str | os.PathLike) -> bool:
     """Whether a PLY's header names the Inria 3DGS columns (read from the header only)."""
     with open(path, "rb") as f:
@@ -178,7 +184,8 @@ def gaussian_extent_points(
 def read_splat_extent_cloud(path: str | Path, opacity_min: float, k_sigma: float) -> dict[str, np.ndarray]:
     """Point cloud of the opaque Gaussians of an Inria-layout ``splat.ply`` with their extents
     (see :func:`gaussian_extent_points`; ``k_sigma`` 0: the centres alone); colours from the SH DC term.
-    The PLY's opacity is a logit: it is mapped through the sigmoid before ``opacity_min`` applies."""
+    The PLY's opacity is a logit: it is mapped through the sigmoid before ``opacity_min`` applies.
+    ``rows``: the PLY row of each Gaussian kept (the order of the centres' block)."""
     g = read_splat(path)
     op = 1.0 / (1.0 + np.exp(-np.asarray(g["opacities"], np.float64)))  # [N]
     keep = op >= opacity_min
@@ -191,4 +198,4 @@ def read_splat_extent_cloud(path: str | Path, opacity_min: float, k_sigma: float
     centre[: len(means)] = True
     return {"xyz": pts, "rgb": np.tile(rgb, (len(pts) // max(len(means), 1), 1)), "opacity": None, "scales": None,
             "centre": centre,
-            "gaussians": int(keep.sum())}
+            "gaussians": int(keep.sum()), "rows": np.flatnonzero(keep)}

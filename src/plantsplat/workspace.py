@@ -142,6 +142,11 @@ class Workspace:
         return self.root / "traits.png"
 
     @property
+    def plant_ply(self) -> Path:
+        """The Gaussians of the plant alone, as the traits stage found it (Inria 3DGS PLY)."""
+        return self.root / "plant.ply"
+
+    @property
     def run_json(self) -> Path:
         return self.root / "run.json"
 

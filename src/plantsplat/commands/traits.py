@@ -50,7 +50,9 @@ def run(cfg: TraitsCommand) -> int:
         for k in TRAIT_KEYS
     )
     console.print(f"traits ({out['quality']}, scale: {out['scale'].get('source')}): {vals}", highlight=False)
-    console.print(f"wrote {ws.traits_json}, {ws.traits_csv}" + (f", {ws.traits_png}" if cfg.figure else ""))
+    wrote = [ws.traits_json, ws.traits_csv, *([ws.traits_png] if cfg.figure else []),
+             *([ws.plant_ply] if ws.plant_ply.is_file() else [])]
+    console.print("wrote " + ", ".join(str(p) for p in wrote))
     return EXIT_RESULT_FAILED if out["quality"] == "failed" else 0
 
 

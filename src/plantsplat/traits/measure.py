@@ -427,6 +427,7 @@ def measure_traits(
         traits=traits, robust=robust, quality="warning" if reasons else "ok", reasons=reasons, scale=scale,
         cube=cube_json, clusters=clusters_info, settings=asdict(s), plant_points=P, plant_colors=C,
         plant_centres=centres,
+        plant_gaussians=np.unique(gaussian[plant_mask & is_centre]) if centre_mask is not None else None,
         cube_points=cube_pts, fruit_centres=fruit_centres, transform=T, timings=timings, notes=notes, soil_z=soil,
         base_spread=spread,
     )

@@ -31,6 +31,9 @@ class TraitResult:
     plant_centres: np.ndarray | None = None
     """[M, 3] the centre of the Gaussian each plant point was sampled from (calibrated frame); None when the cloud's
     points are not the Gaussians' extent samples."""
+    plant_gaussians: np.ndarray | None = None
+    """[G] sorted indices of the Gaussians whose centres lie on the plant (in the order of the cloud's centres); None
+    when the cloud's points are not the Gaussians' extent samples."""
     cube_points: np.ndarray | None = None
     """[K, 3] the cube's points in the calibrated frame."""
     fruit_centres: np.ndarray | None = None

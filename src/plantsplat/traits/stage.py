@@ -2,10 +2,10 @@
 
 It reads the exported model (``WS/export/splat.ply``, the Gaussians with their extents sampled, or
 ``WS/export/points.ply``, their centres), the poses stage's calibration and cube, the segment stage's
-pot and the other stages' records for their checks; it writes ``WS/traits.json``, ``traits.csv`` and
-``traits.png``. The measurement itself is :func:`plantsplat.traits.measure.measure_traits`; the
-verdict, :mod:`plantsplat.traits.checks`; the height's bounds, :mod:`plantsplat.traits.height`; the widths',
-:mod:`plantsplat.traits.widths`.
+pot and the other stages' records for their checks; it writes ``WS/traits.json``, ``traits.csv``, ``traits.png``
+and ``plant.ply`` (the plant's Gaussians alone, without the cube and what was left out). The measurement itself is
+:func:`plantsplat.traits.measure.measure_traits`; the verdict, :mod:`plantsplat.traits.checks`; the height's bounds,
+:mod:`plantsplat.traits.height`; the widths', :mod:`plantsplat.traits.widths`.
 
 Usage:
     from plantsplat.traits import stage
@@ -28,7 +28,7 @@ from plantsplat.errors import PlantsplatError
 from plantsplat.io import csv_cell, read_json, write_json_atomic, write_text_atomic
 from plantsplat.log import get_logger
 from plantsplat.markers import recorded_cube
-from plantsplat.ply import is_splat, read_point_cloud, read_splat_extent_cloud
+from plantsplat.ply import is_splat, read_point_cloud, read_splat_extent_cloud, write_splat_rows
 from plantsplat.segment.object3d import POT_SLAB_CM
 from plantsplat.train.data import load_scene
 from plantsplat.traits.checks import result_checks, stage_checks, workspace_soil
@@ -51,7 +51,8 @@ def inputs(ws: Workspace, points: Path | None = None) -> list[Path]:
 
 
 def outputs(ws: Workspace) -> list[Path]:
-    """The files the stage writes (and its record checks); ``traits.png`` is a figure of them."""
+    """The files the stage writes (and its record checks); ``traits.png`` is a figure of them, and ``plant.ply`` the
+    Gaussians they were measured on (both written where there is a plant)."""
     return [ws.traits_json, ws.traits_csv]
 
 
@@ -91,7 +92,8 @@ def run(ws, cfg=None, *, points_path: str | Path | None = None, calibrated: bool
 
     Reads ``WS/export/points.ply`` (or ``points_path``) and ``WS/poses.json`` (``scale_source``
     'aruco' means calibrated), writes ``traits.json``, ``traits.csv`` and ``traits.png``. The height is
-    measured from the soil (:func:`plantsplat.traits.checks.workspace_soil`). ``quality`` is ``failed`` when
+    measured from the soil (:func:`plantsplat.traits.checks.workspace_soil`). Measured on a splat, the plant's own
+    Gaussians are written to ``plant.ply`` (:func:`write_plant_model`). ``quality`` is ``failed`` when
     nothing could be measured or a check of a stage or of the measurement fails (the files are written
     all the same; the commands then exit with :data:`plantsplat.errors.EXIT_RESULT_FAILED`).
 
@@ -157,6 +159,7 @@ def run(ws, cfg=None, *, points_path: str | Path | None = None, calibrated: bool
     _judge(out, res, ws, cams if calibrated else None, soil, cube_edge_cm(s, cube))
     write_json_atomic(ws.traits_json, out)
     write_text_atomic(ws.traits_csv, traits_csv_text(out, ws.root.name))
+    write_plant_model(ws, ply if extents else None, data.get("rows"), res)
     if figure and res.plant_points is not None:
         traits_figure(res, ws.traits_png, title=ws.root.name, quality=out["quality"])
     if out["quality"] == "failed":
@@ -166,6 +169,20 @@ def run(ws, cfg=None, *, points_path: str | Path | None = None, calibrated: bool
     for r in res.notes:
         log.info("traits: %s", r)
     return out
+
+
+def write_plant_model(ws: Workspace, splat: Path | None, rows: np.ndarray | None, res: TraitResult) -> None:
+    """``WS/plant.ply``: the Gaussians of the measured ``splat`` whose centres lie on the plant (``rows``: the PLY row of
+    each Gaussian the measurement read), every column as the splat has it, so the file opens in the same viewers. Where
+    the measurement has no plant Gaussians (a cloud of points, or no plant), an earlier ``plant.ply`` is removed: it
+    would describe another result."""
+    if splat is None or rows is None or res.plant_gaussians is None or not len(res.plant_gaussians):
+        if ws.plant_ply.is_file():
+            ws.plant_ply.unlink()
+            log.info("traits: removed %s (this measurement found no plant Gaussians)", ws.plant_ply)
+        return
+    write_splat_rows(ws.plant_ply, splat, rows[res.plant_gaussians])
+    log.info("traits: the plant alone, %d of %d Gaussians -> %s", len(res.plant_gaussians), len(rows), ws.plant_ply)
 
 
 def fruit_views(ws: Workspace) -> list | None:
