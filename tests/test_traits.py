@@ -454,6 +454,7 @@ def test_the_plant_alone_is_written_as_a_splat_of_its_own(tmp_path):
     wanted = {tuple(p) for p in np.asarray(pts[plant & ~faint], np.float32)}
     assert got <= rows and got <= wanted  # no cube, floater or faint Gaussian
     assert len(got) >= 0.98 * len(wanted)
+    assert len(out["means"]) == len(got)  # each Gaussian once
     assert np.all(out["opacities"] == 4.0) and out["shN"].shape == (len(got), 3, 3)
     cloud = ws / "points.ply"
     _write_points_ply(cloud, pts, cols, np.ones(n))
