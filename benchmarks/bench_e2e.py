@@ -5,7 +5,9 @@ Each command runs in a process of its own, as a user's would.
 For each capture the whole pipeline runs on its video with its ground truth (`plantsplat run VIDEO
 --out WS --ground-truth ground_truth.json --no-report`); per capture are recorded: the exit code,
 every trait's estimate and error against the truth, ``traits.json``'s quality and every check that
-decided it (name, value, threshold, passed), the stages' times. Captures:
+decided it (name, value, threshold, passed), the stages' times, and ``width_axes``: the measured plant
+(``plant.ply``) spanned along the truth's own principal axes, and how far the two clouds' axes lie apart
+(:func:`width_axes_check`). Captures:
 
 - the foreign renders in ``../shared/datasets/foreign_renders/`` (their truth: height above the soil,
   widths and the rest over every plant vertex);
@@ -77,6 +79,7 @@ def run_capture(label: str, video: Path, truth: Path, ws: Path, mode: str = "run
                          for k, v in ev.items()}
     if (ws / "traits.json").is_file() and truth.is_file():
         row.update(height_check(read_json(ws / "traits.json"), read_json(truth)))
+        row["width_axes"] = width_axes_check(ws, truth.parent, read_json(ws / "traits.json"))
     if (ws / "run.json").is_file():
         stages = read_json(ws / "run.json").get("stages", {})
         row["stage_seconds"] = {k: v.get("seconds") for k, v in stages.items()}
@@ -112,6 +115,32 @@ def height_check(traits: dict, truth: dict) -> dict:
     if h is not None and b:
         out["truth_in_height_bounds"] = bool(b[0] <= h <= b[1])
     return out
+
+
+def width_axes_check(ws: Path, cap: Path, traits: dict) -> dict | None:
+    """Whether the widths' errors come from the plant's extent or from its principal axes: the plant the traits stage
+    measured (``plant.ply``, its Gaussians' axis ends at the stage's ``extent_sigma``) spanned along the truth's own
+    PCA axes, in % of the true widths, and the angle between the two major axes. None without ``plant.ply`` or the
+    truth's surface points."""
+    from bench_segment import true_plant_points
+
+    from plantsplat.ply import read_splat_extent_cloud
+    from plantsplat.traitdefs import pca_axes
+
+    if not (ws / "plant.ply").is_file() or not any((cap / f).is_file() for f in ("plant_points.npz", "plant_gt.ply")):
+        return None
+    sigma = float((traits.get("settings") or {}).get("extent_sigma", 2.0))
+    ours = read_splat_extent_cloud(ws / "plant.ply", 0.0, sigma)["xyz"]
+    truth = true_plant_points(cap)
+    centre, axes = pca_axes(truth)
+
+    def spans(p):
+        q = (p[:, :2] - centre) @ axes.T
+        return q.max(0) - q.min(0)
+
+    along = 100.0 * (spans(ours) / spans(truth) - 1.0)
+    apart = np.degrees(np.arccos(min(1.0, abs(float(axes[0] @ pca_axes(ours)[1][0])))))
+    return {"widths_along_truth_axes_pct": [round(float(x), 2) for x in along], "axes_apart_deg": round(float(apart), 1)}
 
 
 def height_verdict(rows: list[dict]) -> dict:
