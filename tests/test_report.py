@@ -121,6 +121,31 @@ def test_full_report_has_every_section(full_ws):
     assert "27.31" in text  # metrics.json psnr, shown generically
 
 
+def test_the_viewer_shows_the_plant_alone_where_the_traits_stage_wrote_it(tmp_path):
+    """plant.ply, as new as the exported model, is the splat the viewer shows; an older one (the model exported
+    again since) is not."""
+    import os
+
+    from plantsplat.ply import write_splat_rows
+
+    ws = make_synthetic_workspace(tmp_path / "w", n_gaussians=400, n_frames=3, stages=("frames", "poses", "export"))
+    splat, plant = ws / "export" / "splat.ply", ws / "plant.ply"
+    write_splat_rows(plant, splat, np.arange(0, 400, 4))
+
+    def shown():
+        text = write_report(ws).read_text()
+        b64 = re.search(r'id="splat-data">([^<]+)</script>', text).group(1)
+        return {tuple(p) for p in decode_splat(base64.b64decode(b64))["position"].tolist()}, text
+
+    positions, text = shown()
+    assert positions == {tuple(p) for p in read_splat_ply(plant).means.tolist()} and len(positions) == 100
+    assert "of the plant alone (plant.ply)" in text
+    st = plant.stat()
+    os.utime(splat, (st.st_atime, st.st_mtime + 10))
+    positions, text = shown()
+    assert len(positions) == 400 and "plant alone" not in text
+
+
 def test_partial_workspace_names_missing_parts(tmp_path):
     ws = make_synthetic_workspace(tmp_path / "p", n_frames=4, stages=("frames", "segment"))
     text = write_report(ws).read_text()

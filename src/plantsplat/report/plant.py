@@ -118,18 +118,28 @@ def _scene_frame(points: np.ndarray) -> tuple[list[float], float]:
     return [float(x) for x in c], max(r, 1e-3)
 
 
+def viewer_splat(ws: Workspace) -> Path:
+    """The splat the 3D viewer shows: the plant alone (``plant.ply``, from the traits stage) where it is as new as the
+    exported model, else the whole model (``export/splat.ply``: the plant and the cube)."""
+    plant, model = ws.plant_ply, ws.splat_ply
+    if plant.is_file() and (not model.is_file() or plant.stat().st_mtime >= model.stat().st_mtime):
+        return plant
+    return model
+
+
 def _viewer_section(ws: Workspace, parts: _Parts, opts: ReportConfig) -> str:
     if not opts.viewer:
         return '<p class="muted">3D viewer left out (--no-viewer).</p>'
     blocks, notes, stats = [], [], []
     cfg: dict = {"background": BACKGROUND, "splat": False, "points": False}
     frame_pts = None
-    if ws.splat_ply.is_file():
-        g = _guard(parts, "Gaussian splat", lambda: read_splat_ply(ws.splat_ply))
+    splat = viewer_splat(ws)
+    if splat.is_file():
+        g = _guard(parts, "Gaussian splat", lambda: read_splat_ply(splat))
         if isinstance(g, str):
             notes.append(g)
         elif len(g) == 0:
-            notes.append(parts.miss("Gaussians (export/splat.ply holds none)", _cmd("train", ws)))
+            notes.append(parts.miss(f"Gaussians ({splat.relative_to(ws.root)} holds none)", _cmd("train", ws)))
         else:
             raw = encode_splat(g, opts.max_gaussians)
             n_kept = len(raw) // 32
@@ -137,7 +147,8 @@ def _viewer_section(ws: Workspace, parts: _Parts, opts: ReportConfig) -> str:
             cfg["splat"] = True
             cfg["splat_count"] = n_kept
             frame_pts = g.means
-            stats.append(f"{n_kept:,} Gaussians" + (f" (most visible of {len(g):,})" if n_kept < len(g) else ""))
+            stats.append(f"{n_kept:,} Gaussians" + (f" (most visible of {len(g):,})" if n_kept < len(g) else "")
+                         + (" of the plant alone (plant.ply)" if splat == ws.plant_ply else ""))
             parts.have("Gaussian splat")
     else:
         notes.append(parts.miss("Gaussian splat (export/splat.ply)", _cmd("export", ws)))
