@@ -122,26 +122,38 @@ def test_full_report_has_every_section(full_ws):
 
 
 def test_the_viewer_shows_the_plant_alone_where_the_traits_stage_wrote_it(tmp_path):
-    """plant.ply, as new as the exported model, is the splat the viewer shows; an older one (the model exported
-    again since) is not."""
+    """plant.ply is the splat the viewer shows where the traits stage's record says it measured export/splat.ply as it
+    is now; not once the model is exported again, nor where the traits measured another cloud (--points)."""
     import os
 
     from plantsplat.ply import write_splat_rows
+    from plantsplat.stages import run_stage
+    from plantsplat.workspace import Workspace
 
     ws = make_synthetic_workspace(tmp_path / "w", n_gaussians=400, n_frames=3, stages=("frames", "poses", "export"))
+    w = Workspace(ws)
     splat, plant = ws / "export" / "splat.ply", ws / "plant.ply"
-    write_splat_rows(plant, splat, np.arange(0, 400, 4))
+
+    def traits(inputs):  # the traits stage's record over ``inputs``, and its plant.ply
+        run_stage(w, "traits", {}, inputs, [plant], lambda _: write_splat_rows(plant, splat, np.arange(0, 400, 4)) or {},
+                  force=True)
 
     def shown():
         text = write_report(ws).read_text()
         b64 = re.search(r'id="splat-data">([^<]+)</script>', text).group(1)
         return {tuple(p) for p in decode_splat(base64.b64decode(b64))["position"].tolist()}, text
 
+    traits([splat])
     positions, text = shown()
     assert positions == {tuple(p) for p in read_splat_ply(plant).means.tolist()} and len(positions) == 100
     assert "of the plant alone (plant.ply)" in text
-    st = plant.stat()
-    os.utime(splat, (st.st_atime, st.st_mtime + 10))
+    st = splat.stat()
+    os.utime(splat, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))  # exported again since
+    positions, text = shown()
+    assert len(positions) == 400 and "plant alone" not in text
+    other = tmp_path / "other.ply"
+    other.write_bytes(splat.read_bytes())
+    traits([other])  # measured on another cloud
     positions, text = shown()
     assert len(positions) == 400 and "plant alone" not in text
 

@@ -37,6 +37,7 @@ from plantsplat.report.figures import (
     render_pairs,
 )
 from plantsplat.report.splat import encode_splat, read_points_ply, read_splat_ply
+from plantsplat.stages import fingerprints, read_record
 from plantsplat.traitdefs import TRAIT_KEYS, TRAIT_LABELS, TRAIT_UNITS
 from plantsplat.workspace import Workspace
 
@@ -119,12 +120,13 @@ def _scene_frame(points: np.ndarray) -> tuple[list[float], float]:
 
 
 def viewer_splat(ws: Workspace) -> Path:
-    """The splat the 3D viewer shows: the plant alone (``plant.ply``, from the traits stage) where it is as new as the
-    exported model, else the whole model (``export/splat.ply``: the plant and the cube)."""
-    plant, model = ws.plant_ply, ws.splat_ply
-    if plant.is_file() and (not model.is_file() or plant.stat().st_mtime >= model.stat().st_mtime):
-        return plant
-    return model
+    """The splat the 3D viewer shows: the plant alone (``plant.ply``) where the traits stage's record says it measured
+    the exported model as it is now, else the whole model (``export/splat.ply``: the plant and the cube)."""
+    measured = (read_record(ws, "traits") or {}).get("inputs") or {}
+    now = fingerprints(ws, [ws.splat_ply])
+    if ws.plant_ply.is_file() and all(fp is not None and measured.get(k) == fp for k, fp in now.items()):
+        return ws.plant_ply
+    return ws.splat_ply
 
 
 def _viewer_section(ws: Workspace, parts: _Parts, opts: ReportConfig) -> str:
