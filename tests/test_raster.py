@@ -18,6 +18,7 @@ import pytest
 import torch
 
 from plantsplat.raster import RasterInputError, rasterize, resolve_backend
+from plantsplat.raster.cpu_order import depth_order
 
 GRAD_RTOL = 1e-4
 IMG_ATOL = 2e-5
@@ -209,6 +210,31 @@ def test_all_culled_gives_empty_image_and_finite_zero_gradients():
     assert float(out.alpha.detach().abs().sum()) == 0.0 and not bool(out.visible.any())
     for g in grads:
         assert g is not None and torch.isfinite(g).all() and float(g.abs().sum()) == 0.0
+
+
+def _depth_order_by_keys(depths: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """The reference order: numpy's sort of the 64-bit keys (depth bits, index) of the visible Gaussians."""
+    vis = np.flatnonzero(counts)
+    z = depths[vis]
+    bits = np.where(z > 0, z, np.float32(0.0)).view(np.uint32).astype(np.uint64)
+    keys = np.sort((bits << np.uint64(32)) | vis.astype(np.uint64))
+    return (keys & np.uint64(0xFFFFFFFF)).astype(np.int64)
+
+
+@pytest.mark.parametrize("n", [0, 1, 7, 3000, 70_000])
+def test_depth_order_is_the_order_of_a_sort_by_depth_then_index(n):
+    """The compositor's radix sort gives the order of a sort of (depth bits, index) keys: ties (many, at every
+    digit), depths below zero, -0.0 and NaN (as 0), hidden Gaussians left out; and keys that share their top digits
+    (passes skipped)."""
+    rng = np.random.default_rng(n)
+    depths = (rng.random(n) * 50 + 0.05).astype(np.float32)
+    if n > 10:
+        depths[rng.integers(0, n, n // 3)] = depths[rng.integers(0, n, n // 3)]  # repeated depths
+        depths[:4] = [-1.0, -0.0, np.nan, 0.0]
+    counts = rng.integers(0, 3, n)
+    assert np.array_equal(depth_order(depths, counts), _depth_order_by_keys(depths, counts))
+    near = (1.0 + rng.integers(0, 5, n) * 1e-6).astype(np.float32)  # one exponent, few low digits
+    assert np.array_equal(depth_order(near, counts), _depth_order_by_keys(near, counts))
 
 
 def test_no_grad_path_matches_training_path():

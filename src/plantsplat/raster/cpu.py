@@ -8,9 +8,9 @@ most of the time goes. The steps, all in float32:
    opacity, colour, depth, and the extent of the ellipse outside which alpha < 1/255), so a
    tile-list entry costs one cache line rather than one in each of six arrays.
 2. ``_bin``: tile boxes (gsplat's box from the screen radii, less the tiles the alpha >= 1/255
-   ellipse's extent misses), visible Gaussians sorted once by a 64-bit (depth, index) key with
-   numpy's integer sort, then a counting sort into per-tile lists, so each tile's list is front to
-   back.
+   ellipse's extent misses), visible Gaussians put in depth order once (equal depths in index order;
+   :mod:`plantsplat.raster.cpu_order`), then a counting sort into per-tile lists, so each tile's list
+   is front to back.
 3. ``_forward_render`` / ``_forward_train``: parallel over workers, each taking runs of 8
    non-empty tiles in raster order from a shared atomic counter (a worker slowed by other load
    takes fewer; neighbouring tiles share Gaussians and run on the same core); within a tile, the
@@ -50,6 +50,7 @@ from torch import Tensor
 from plantsplat.raster.numba_config import FASTMATH  # (also numba's threading layer)
 
 from . import RasterInputError
+from .cpu_order import depth_order
 
 
 @intrinsic
@@ -304,22 +305,15 @@ def _fill(order, box, tiles_x, n_tiles, n_chunks):  # pragma: no cover - numba
 def _bin(rec, radii, depths, tile_size, tiles_x, tiles_y):
     """Per-tile depth-sorted Gaussian lists: (offsets [n_tiles + 1] int64, ids [n_isects] int32).
 
-    Visible Gaussians are sorted once by the 64-bit key (depth bits, index): non-negative float32
-    depths order like their bit patterns, and the index breaks ties as a stable sort would. numpy's
-    sort of integer keys is several times faster than an argsort of floats.
+    Visible Gaussians are put in depth order once (:func:`~plantsplat.raster.cpu_order.depth_order`, a stable radix
+    sort: equal depths in index order), then counted into the tiles.
     """
     n = rec.shape[0]
     box = np.empty((n, 4), np.int32)
-    counts = np.empty(n, np.int64)
+    counts = np.zeros(n, np.int64)
     if n:
         _boxes(rec, radii, tile_size, tiles_x, tiles_y, box, counts)
-    vis = np.flatnonzero(counts)
-    zv = depths[vis]
-    zb = np.where(zv > 0, zv, np.float32(0.0)).view(np.uint32).astype(np.uint64)  # no -0.0
-    keys = (zb << np.uint64(32)) | vis.astype(np.uint64)
-    keys.sort()
-    order = (keys & np.uint64(0xFFFFFFFF)).astype(np.int64)
-    return _fill(order, box, tiles_x, tiles_x * tiles_y, _n_workers())
+    return _fill(depth_order(depths, counts), box, tiles_x, tiles_x * tiles_y, _n_workers())
 
 
 @njit(parallel=True, cache=True)
