@@ -525,3 +525,32 @@ def _alive(pid: int) -> bool:
             return not any(line.startswith("State:") and "Z" in line.split()[1] for line in f)
     except FileNotFoundError:
         return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the stage forks on Linux only")
+def test_a_forked_computation_gives_its_value_and_leaves_the_stage_as_it_was():
+    """start_forked: the child's value comes back; what the child changes stays in the child; a child that fails or
+    hangs past the timeout is ended and the value computed in the stage instead; stop() ends a running child."""
+    import os
+    import time
+
+    from plantsplat.workers import start_forked
+
+    stage = os.getpid()
+    state = {"n": 1}
+
+    def work():
+        state["n"] += 1
+        return state["n"], os.getpid()
+
+    n, pid = start_forked(work).result()
+    assert n == 2 and pid != stage and state == {"n": 1}
+    assert start_forked(lambda: 1 / 0 if os.getpid() != stage else "here").result() == "here"
+    t0 = time.monotonic()
+    hung = start_forked(lambda: time.sleep(60) if os.getpid() != stage else "here")
+    assert hung.result(timeout=1.0) == "here" and time.monotonic() - t0 < 10
+    running = start_forked(lambda: time.sleep(60))
+    child = running._pid
+    running.stop()
+    assert not _alive(child)
+    running.stop()  # twice: nothing more to do

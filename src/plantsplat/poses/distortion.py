@@ -7,9 +7,11 @@ distance from the plant. On independent renders with no distortion, k1 came out 
 length 0.7-1.8 % long, which put the cameras 0.7-2.7 % too far out.
 
 :func:`choose_distortion` bundle-adjusts the mapped model twice from the same start, with the distortion free and
-with it zero, and keeps the distortion only where the Bayesian information criterion (BIC) says the frames need
-it: the errors' likelihood under the bundle adjustment's Cauchy loss must gain more than ``p ln n`` for ``n``
-observations and ``p`` distortion coefficients (Schwarz 1978). Both adjustments use that robust loss
+with it zero, and keeps the distortion only where the Bayesian information criterion (BIC) says the frames need it:
+the errors' likelihood under the bundle adjustment's Cauchy loss must gain more than ``p ln n`` for ``n``
+observations and ``p`` distortion coefficients (Schwarz 1978). The two run side by side, the second in a child forked
+from the stage (:func:`plantsplat.workers.start_forked`), whose adjusted values are put back into the stage's copy:
+the result is, to the bit, that of the two made one after the other. Both adjustments use that robust loss
 (:func:`plantsplat.poses.sfm.final_ba_options`): with plain least squares the few matches left off by pixels pulled
 the focal length (a render's 1.8 % long, 0.5 % with the loss).
 
@@ -21,12 +23,14 @@ Usage:
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import pycolmap
 
 from plantsplat.log import get_logger
 from plantsplat.poses.sfm import final_ba_options
+from plantsplat.workers import start_forked
 
 log = get_logger(__name__)
 
@@ -34,6 +38,11 @@ BA_ITERATIONS = 100
 """Iterations of each trial bundle adjustment (both converge in far fewer on a mapped model)."""
 
 NO_DISTORTION = {"SIMPLE_PINHOLE", "PINHOLE"}
+
+FORK_TIMEOUT_FACTOR = 5.0
+"""The pinhole adjustment runs in a forked child beside the adjustment with distortion
+(:func:`plantsplat.workers.start_forked`): a child that has given nothing this many times the other's seconds (plus 10
+s) later is ended, and the pinhole adjustment made in the stage's process."""
 
 
 def bundle_adjust(rec, refine_distortion: bool, num_threads: int, loss_scale_px: float) -> tuple[float, int]:
@@ -47,6 +56,30 @@ def bundle_adjust(rec, refine_distortion: bool, num_threads: int, loss_scale_px:
     opts = final_ba_options(refine_distortion, num_threads, loss_scale_px, BA_ITERATIONS)
     summary = pycolmap.create_default_bundle_adjuster(opts, config, rec).solve()
     return float(summary.ceres_summary.final_cost), int(summary.num_residuals) // 2
+
+
+def _adjusted(zero, num_threads: int, loss_scale_px: float) -> tuple[float, dict]:
+    """The pinhole adjustment of :func:`choose_distortion`: its cost and the values it gave (:func:`adjusted_values`)."""
+    cost, _ = bundle_adjust(zero, False, num_threads, loss_scale_px)
+    return cost, adjusted_values(zero)
+
+
+def adjusted_values(rec) -> dict:
+    """What a bundle adjustment changes in ``rec``: each camera's parameters, each posed frame's pose (rig from
+    world: quaternion xyzw, translation) and each point's position, as float64 arrays by id."""
+    return {"cameras": {i: np.array(c.params, np.float64) for i, c in rec.cameras.items()},
+            "frames": {i: np.array(f.rig_from_world.params, np.float64) for i, f in rec.frames.items() if f.has_pose},
+            "points": {i: np.array(p.xyz, np.float64) for i, p in rec.points3D.items()}}
+
+
+def set_values(rec, values: dict) -> None:
+    """Put :func:`adjusted_values` of an adjusted copy of ``rec`` into ``rec``, bit for bit."""
+    for i, params in values["cameras"].items():
+        rec.cameras[i].params = params
+    for i, q_t in values["frames"].items():
+        rec.frames[i].rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(q_t[:4]), q_t[4:])
+    for i, xyz in values["points"].items():
+        rec.points3D[i].xyz = xyz
 
 
 def distortion_params(camera) -> list[int]:
@@ -83,8 +116,14 @@ def choose_distortion(rec, num_threads: int, loss_scale_px: float, report: dict)
     if p == 0 or rec.num_points3D() == 0:
         return rec, p > 0
     zero = without_distortion(rec)
-    cost_free, n = bundle_adjust(rec, True, num_threads, loss_scale_px)
-    cost_zero, _ = bundle_adjust(zero, False, num_threads, loss_scale_px)
+    beside = start_forked(lambda: _adjusted(zero, num_threads, loss_scale_px))
+    try:
+        t0 = time.perf_counter()
+        cost_free, n = bundle_adjust(rec, True, num_threads, loss_scale_px)
+        cost_zero, values = beside.result(timeout=FORK_TIMEOUT_FACTOR * (time.perf_counter() - t0) + 10.0)
+    finally:
+        beside.stop()
+    set_values(zero, values)
     gain = bic_gain(cost_zero, cost_free, n, p, loss_scale_px)
     kept = gain > 0
     report["distortion"] = {"kept": kept, "bic_gain": round(gain, 2), "observations": n,
