@@ -478,6 +478,16 @@ def test_the_kernel_warmup_starts_once_per_process_and_leaves_its_stamp(monkeypa
     assert kernels_cached()
 
 
+def test_every_cached_kernel_module_is_in_the_stamp():
+    """A kernel module left out of the stamp's digest would let a changed kernel pass for a cached one: the first run
+    after an update would compile it inside a stage, on one core, instead of in the warm-up."""
+    from plantsplat import kernel_cache
+
+    raster = Path(kernel_cache.__file__).with_name("raster")
+    cached = {p.name for p in raster.glob("*.py") if "cache=True" in p.read_text()}
+    assert cached and cached <= set(kernel_cache.KERNEL_MODULES)
+
+
 def test_the_kernel_stamp_belongs_to_one_numba_cache_and_one_version_of_the_kernels(tmp_path, monkeypatch):
     from plantsplat import kernel_cache
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numba
 import torch
 
-from plantsplat.raster import cpu, cpu_projection, sh_cpu, ssim
+from plantsplat.raster import cpu, cpu_order, cpu_projection, sh_cpu, ssim
 from plantsplat.segment.object3d import footprints, render_values
 from plantsplat.train import data as D
 from plantsplat.train.checkpoint import load_model
@@ -32,7 +32,7 @@ from plantsplat.workspace import Workspace
 
 def signatures() -> dict[str, set[str]]:
     return {f"{m.__name__}.{name}": {str(s) for s in obj.signatures}
-            for m in (cpu, cpu_projection, sh_cpu, ssim) for name, obj in vars(m).items()
+            for m in (cpu, cpu_order, cpu_projection, sh_cpu, ssim) for name, obj in vars(m).items()
             if isinstance(obj, numba.core.registry.CPUDispatcher)}
 
 

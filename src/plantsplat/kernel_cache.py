@@ -22,7 +22,7 @@ from pathlib import Path
 
 import plantsplat
 
-KERNEL_MODULES = ("cpu.py", "cpu_projection.py", "sh_cpu.py", "ssim.py", "numba_config.py")
+KERNEL_MODULES = ("cpu.py", "cpu_order.py", "cpu_projection.py", "sh_cpu.py", "ssim.py", "numba_config.py")
 """The files of ``plantsplat/raster/`` whose kernels numba caches (``numba_config``: the flags they share)."""
 
 
