@@ -528,7 +528,7 @@ def _alive(pid: int) -> bool:
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the stage forks on Linux only")
-def test_a_forked_computation_gives_its_value_and_leaves_the_stage_as_it_was():
+def test_a_forked_computation_gives_its_value_and_leaves_the_stage_as_it_was(tmp_path):
     """start_forked: the child's value comes back; what the child changes stays in the child; a child that fails or
     hangs past the timeout is ended and the value computed in the stage instead; stop() ends a running child."""
     import os
@@ -549,8 +549,13 @@ def test_a_forked_computation_gives_its_value_and_leaves_the_stage_as_it_was():
     t0 = time.monotonic()
     hung = start_forked(lambda: time.sleep(60) if os.getpid() != stage else "here")
     assert hung.result(timeout=1.0) == "here" and time.monotonic() - t0 < 10
-    running = start_forked(lambda: time.sleep(60))
-    child = running._pid
+    pid_file = tmp_path / "child.pid"
+    running = start_forked(lambda: (pid_file.write_text(str(os.getpid())), time.sleep(60)))
+    deadline = time.monotonic() + 10.0
+    while not (pid_file.is_file() and pid_file.read_text()) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    child = int(pid_file.read_text())
+    assert _alive(child)
     running.stop()
     assert not _alive(child)
     running.stop()  # twice: nothing more to do

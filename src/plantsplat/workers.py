@@ -164,7 +164,7 @@ def start_forked(fn: Callable[[], T]) -> Forked[T]:
         return Forked(fn, None, None)
     r, w = os.pipe()
     parent = os.getpid()
-    with warnings.catch_warnings():  # Python 3.12+ warns of any fork beside native threads (the timeout above)
+    with warnings.catch_warnings():  # Python 3.12+ warns of any fork beside native threads: see result()'s timeout
         warnings.simplefilter("ignore", DeprecationWarning)
         pid = os.fork()
     if pid == 0:  # pragma: no cover - the child (coverage does not follow it)
