@@ -123,12 +123,12 @@ def choose_distortion(rec, num_threads: int, loss_scale_px: float, report: dict)
         cost_zero, values = beside.result(timeout=FORK_TIMEOUT_FACTOR * (time.perf_counter() - t0) + 10.0)
     finally:
         beside.stop()
-    set_values(zero, values)
     gain = bic_gain(cost_zero, cost_free, n, p, loss_scale_px)
     kept = gain > 0
     report["distortion"] = {"kept": kept, "bic_gain": round(gain, 2), "observations": n,
                             "fitted": [float(v) for c in cams for v in np.asarray(c.params)[distortion_params(c)]]}
     if not kept:
+        set_values(zero, values)  # the child's adjustment (the same values when it ran here)
         report["events"].append("lens distortion left out: the frames do not support it (BIC)")
     log.info("poses: lens distortion %s (BIC gain %.1f)", "fitted" if kept else "left out, not supported by the frames",
              gain)
