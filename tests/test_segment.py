@@ -45,6 +45,7 @@ from plantsplat.segment.object3d import (
 )
 from plantsplat.segment.scores import mask_iou
 from plantsplat.segment.stored import OBJECT_FILE, SCENE_DIR, save_object
+from plantsplat.train import data as training_data
 from plantsplat.train.data import View
 from plantsplat.workspace import Workspace
 
@@ -645,7 +646,7 @@ def segmented(synth_capture, tmp_path_factory):
     ws = Workspace(tmp_path_factory.mktemp("segment_e2e") / "ws")
     shutil.copytree(cap / "frames", ws.images_dir)
     poses_stage.run(ws, PosesConfig())
-    reads = collections.Counter()  # the frames the stage decodes after its quick model
+    reads = collections.Counter()  # the frames the stage decodes, for its quick model and its masks
 
     def counted(path, *args, **kwargs):
         reads[Path(path).name] += Path(path).parent == ws.images_dir
@@ -653,6 +654,7 @@ def segmented(synth_capture, tmp_path_factory):
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(segmentation, "read_image", counted)
+        mp.setattr(training_data, "read_image", counted)
         info = segment_stage(ws, SegmentConfig())
     return cap, ws, info, reads
 
@@ -695,7 +697,8 @@ def test_up_to_date_and_renders_cut_like_frames(segmented):
 
 
 def test_each_frame_decoded_once_for_its_mask_and_rgba(segmented):
-    """The mask step reads a frame once: GrabCut refines on it and its RGBA image is written from it (issue 43)."""
+    """The stage reads a frame once: the quick model trains on it, GrabCut refines on it and its RGBA image is
+    written from it (issue 43)."""
     cap, ws, info, reads = segmented
     assert reads == {n: 1 for n in ws.image_names()}
     for name in ws.image_names()[:3]:

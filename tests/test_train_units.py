@@ -503,8 +503,8 @@ def test_undistortion_applied(tmp_path):
     from plantsplat.workspace import Workspace
 
     ws = Workspace(tmp_path)
-    img = np.zeros((60, 80, 3), np.uint8)
-    img[:, ::8] = 255
+    xs = np.arange(80)[None, :, None]
+    img = np.broadcast_to(127.5 + 120 * np.sin(2 * np.pi * xs / 16), (60, 80, 3)).round().astype(np.uint8)
     for i in range(2):
         write_image_atomic(ws.images_dir / f"frame_{i:05d}.png", img)
     fr = [{"file_path": f"images/frame_{i:05d}.png", "transform_matrix": np.eye(4).tolist()} for i in range(2)]
@@ -512,7 +512,9 @@ def test_undistortion_applied(tmp_path):
                                            "k1": -0.3, "frames": fr})
     v = load_scene(ws, need_masks=False).views[0]
     assert v.image.shape == img.shape and not np.array_equal(v.image, img)
-    assert v.dist.size == 0  # pinhole from here on
+    assert v.dist.size == 0 and v.raw is None  # pinhole from here on
+    kept = load_scene(ws, need_masks=False, keep_raw=True).views[0]
+    assert np.array_equal(kept.raw, img) and np.array_equal(kept.image, v.image)
 
 
 def test_omp_waiting_set_before_torch_loads():

@@ -131,7 +131,8 @@ def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool 
                 plant, cube = (to_frame(p, maps) for p in object_prior(obj, view))  # rendered here: numba's threads
                 prior = np.maximum(plant, cube) > 0.5
                 pending.append((name, cube > 0.5, prior, pool.submit(_frame_mask, ws, name, (plant, cube), cfg,
-                                                                     out_dirs)))
+                                                                     out_dirs, view.raw)))
+                view.raw = view.image = view.mask = None  # its pixels are held until its mask is written
                 while len(pending) > 2 * workers:  # a few frames in flight, not all of them in memory
                     _finish_mask(pending.popleft(), parts, facts)
             while pending:
@@ -146,11 +147,12 @@ def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool 
 
 
 def _frame_mask(ws: Workspace, name: str, prior: tuple[np.ndarray, np.ndarray] | None, cfg: SegmentConfig,
-                out_dirs: tuple[Path, Path] | None) -> np.ndarray | None:
+                out_dirs: tuple[Path, Path] | None, rgb: np.ndarray | None = None) -> np.ndarray | None:
     """Frame ``name``'s mask from its prior ``(plant, cube)``: the outline refined on the frame, the cube kept
     (:func:`plantsplat.segment.frame.object_mask`); None without a prior (a frame with no camera). With ``out_dirs``,
-    the mask and the RGBA image are written there."""
-    rgb = read_image(ws.images_dir / name) if out_dirs is not None or cfg.refine_band_px > 0 else None
+    the mask and the RGBA image are written there. ``rgb``: the frame as decoded (read here when not given)."""
+    if rgb is None and (out_dirs is not None or cfg.refine_band_px > 0):
+        rgb = read_image(ws.images_dir / name)
     mask = None
     if prior is not None:
         mask = object_mask(rgb, *prior, cfg.refine_band_px, unresolved_px(prior[0].shape, cfg.scene_resolution),

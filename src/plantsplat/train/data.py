@@ -53,6 +53,7 @@ class View:
     image: np.ndarray | None = None  # [H, W, 3] uint8, undistorted
     mask: np.ndarray | None = None  # [H, W] uint8 (255 = foreground), undistorted
     dist: np.ndarray = field(default_factory=lambda: np.zeros(0))  # cv2 distortion before undistortion
+    raw: np.ndarray | None = None  # [H, W, 3] uint8, the frame as decoded (load_scene's keep_raw)
 
     @property
     def center(self) -> np.ndarray:
@@ -135,8 +136,9 @@ def _undistort(img: np.ndarray, view: View, nearest: bool) -> np.ndarray:
     return cv2.remap(img, m1, m2, cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
 
-def _load_frame(ws: Workspace, name: str, v: View, source: str, need_masks: bool) -> View:
-    """Frame ``name``'s image and, when it has one, its mask, undistorted into its camera ``v``; returns ``v``."""
+def _load_frame(ws: Workspace, name: str, v: View, source: str, need_masks: bool, keep_raw: bool = False) -> View:
+    """Frame ``name``'s image and, when it has one, its mask, undistorted into its camera ``v``; returns ``v``.
+    ``keep_raw``: the frame as decoded stays in ``v.raw`` too (the same array where nothing is undistorted)."""
     img = read_image(ws.images_dir / name, "rgb")
     if img.shape[:2] != (v.height, v.width):
         raise PlantsplatError(
@@ -144,6 +146,7 @@ def _load_frame(ws: Workspace, name: str, v: View, source: str, need_masks: bool
             f"{v.width}x{v.height}; re-run `plantsplat poses {ws.root}`"
         )
     v.image = _undistort(img, v, nearest=False)
+    v.raw = img if keep_raw else None
     mpath = ws.masks_dir / name
     if mpath.is_file():
         m = read_image(mpath, "gray")
@@ -168,21 +171,23 @@ def excluded_frames(ws: Workspace) -> dict[str, str]:
     return {e["name"]: e.get("reason", "") for e in read_json(ws.segment_json).get("excluded", [])}
 
 
-def training_scene(ws: Workspace, mode: str) -> Scene:
+def training_scene(ws: Workspace, mode: str, keep_raw: bool = False) -> Scene:
     """The frames a model of ``mode`` ("object" or "full") trains on. An object model leaves out the frames the segment
     stage found no plant in; a whole-scene model keeps every posed frame: the segment stage's quick model is one, and
     trains before ``segment.json`` is rewritten, so it must not depend on an earlier run's masks (a forced re-run of
     the segment stage trains the same quick model as its first run)."""
-    return load_scene(ws, need_masks=mode == "object", skip_excluded=mode == "object")
+    return load_scene(ws, need_masks=mode == "object", skip_excluded=mode == "object", keep_raw=keep_raw)
 
 
-def load_scene(ws: Workspace, need_masks: bool, load_images: bool = True, skip_excluded: bool = False) -> Scene:
+def load_scene(ws: Workspace, need_masks: bool, load_images: bool = True, skip_excluded: bool = False,
+               keep_raw: bool = False) -> Scene:
     """Cameras, undistorted images and masks, and SfM points of a workspace.
 
     Poses come from ``sparse/0`` when present, else ``transforms.json``. Frames without a pose are
     skipped with a warning; a mask that is missing or of another size is an error when
     ``need_masks`` (object mode), else masks are loaded when present (for PBR evaluation).
-    ``skip_excluded``: leave out the frames in which the segment stage found no plant.
+    ``skip_excluded``: leave out the frames in which the segment stage found no plant. ``keep_raw``: each
+    view keeps its frame as decoded too (``View.raw``), for a caller that needs it after training.
     """
     ws.require(ws.images_dir, "frames")
     names = ws.image_names()
@@ -215,7 +220,8 @@ def load_scene(ws: Workspace, need_masks: bool, load_images: bool = True, skip_e
             f"the images; re-run `plantsplat poses {ws.root}`"
         )
     if load_images:  # on every core: decoding and undistorting release the GIL; in frame order either way
-        views = list(map_on_cores(lambda n: _load_frame(ws, n, cams[n], source, need_masks), posed, "loading frames"))
+        views = list(map_on_cores(lambda n: _load_frame(ws, n, cams[n], source, need_masks, keep_raw), posed,
+                                  "loading frames"))
     else:
         views = [cams[n] for n in posed]
     for v in views:

@@ -109,11 +109,14 @@ class _State:
     nonfinite: dict = field(default_factory=lambda: {"steps": 0, "gaussians": 0})
 
 
-def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None = None, resume: bool = False) -> dict:
+def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None = None, resume: bool = False,
+                    scene: D.Scene | None = None) -> dict:
     """Train a 3DGS model of a workspace; returns a summary.
 
     ``resume``: go on from ``train/checkpoint.pt`` of an interrupted run with the same options and
     inputs (:func:`plantsplat.pipeline.train_stage` decides); otherwise training starts afresh.
+    ``scene``: the frames to train on, as :func:`plantsplat.train.data.training_scene` gives them for ``cfg.mode``,
+    loaded by a caller that uses them after training too (default: loaded here).
     Trains in ``.train.partial/`` (``split.json``, ``checkpoint.pt`` periodically and atomically, ``model.pt``,
     ``config.json``, ``renders/``), which replaces ``train/`` whole once the model and, with ``cfg.evaluate``,
     its metrics are complete; then ``metrics.json``. Until then the previous outputs stay as they were.
@@ -132,7 +135,7 @@ def train_workspace(ws: Workspace | str | os.PathLike, cfg: TrainConfig | None =
         log.warning("%s", note)
     if not resume:  # a fresh run: nothing of an earlier unfinished one is reused
         remove_tree(paths["dir"])
-    setup = _setup(ws, cfg, rc, paths)
+    setup = _setup(ws, cfg, rc, paths, scene)
     st = _resume(paths, rc, setup) if resume and paths["ckpt"].is_file() else _initial_state(cfg, rc, setup)
     write_json_atomic(paths["config"], {"requested": _jsonable(asdict(cfg)), "resolved": asdict(rc)})
     t_start, cpu_start = time.perf_counter(), time.process_time()
@@ -153,8 +156,8 @@ def _publish(paths: dict, final: dict, metrics: bool) -> None:
         raise PlantsplatError(os_error_message(exc, final["dir"])) from exc
 
 
-def _setup(ws: Workspace, cfg: TrainConfig, rc: ResolvedConfig, paths: dict) -> _Setup:
-    scene = D.training_scene(ws, rc.mode)
+def _setup(ws: Workspace, cfg: TrainConfig, rc: ResolvedConfig, paths: dict, scene: D.Scene | None) -> _Setup:
+    scene = scene if scene is not None else D.training_scene(ws, rc.mode)
     split = D.load_or_make_split(paths["split"], [v.name for v in scene.views], cfg.test_fraction, cfg.test_every)
     train_views = [v for v in scene.views if v.name in set(split["train"])]
     if not train_views:
