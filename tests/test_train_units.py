@@ -499,6 +499,7 @@ def test_transforms_and_colmap_agree(tmp_path):
 
 def test_undistortion_applied(tmp_path):
     from plantsplat.io import write_image_atomic, write_json_atomic
+    from plantsplat.segment.frame import distortion_map, to_frame
     from plantsplat.train.data import load_scene
     from plantsplat.workspace import Workspace
 
@@ -513,6 +514,12 @@ def test_undistortion_applied(tmp_path):
     v = load_scene(ws, need_masks=False).views[0]
     assert v.image.shape == img.shape and not np.array_equal(v.image, img)
     assert v.dist.size == 0 and v.raw is None  # pinhole from here on
+    # the frame's own lens is kept: a render through the pinhole camera is put back onto the frame with it
+    np.testing.assert_allclose(v.frame_dist, [-0.3, 0, 0, 0, 0])
+    back = to_frame(v.image[..., 0].astype(np.float32), distortion_map(v))
+    inner = (slice(10, 50), slice(10, 70))
+    moved = np.abs(v.image[..., 0][inner].astype(np.float32) - img[..., 0][inner]).mean()
+    assert np.abs(back[inner] - img[..., 0][inner]).mean() < 0.2 * moved, moved
     kept = load_scene(ws, need_masks=False, keep_raw=True).views[0]
     assert np.array_equal(kept.raw, img) and np.array_equal(kept.image, v.image)
 

@@ -127,11 +127,13 @@ def object_prior(obj: ObjectModel, view) -> tuple[np.ndarray, np.ndarray]:
 
 def distortion_map(view) -> tuple[np.ndarray, np.ndarray] | None:
     """Where each pixel of the (distorted) frame lies in the view's pinhole image: the two ``cv2.remap`` maps that
-    bring a rendered prior onto the frame. None for a camera without distortion."""
-    if view.dist.size == 0 or not np.any(np.abs(view.dist) > 0):
+    bring a rendered prior onto the frame. None for a camera without distortion. ``view``: as
+    :func:`plantsplat.train.data.load_scene` gives it (the frame's own lens in ``frame_dist``)."""
+    dist = view.frame_dist
+    if dist.size == 0 or not np.any(np.abs(dist) > 0):
         return None
     ys, xs = np.mgrid[0:view.height, 0:view.width].astype(np.float64)
-    pts = cv2.undistortPoints(np.stack([xs.ravel(), ys.ravel()], 1).reshape(-1, 1, 2), view.K, view.dist, P=view.K)
+    pts = cv2.undistortPoints(np.stack([xs.ravel(), ys.ravel()], 1).reshape(-1, 1, 2), view.K, dist, P=view.K)
     pts = pts.reshape(view.height, view.width, 2).astype(np.float32)
     return pts[..., 0], pts[..., 1]
 

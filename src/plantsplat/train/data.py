@@ -52,7 +52,8 @@ class View:
     height: int
     image: np.ndarray | None = None  # [H, W, 3] uint8, undistorted
     mask: np.ndarray | None = None  # [H, W] uint8 (255 = foreground), undistorted
-    dist: np.ndarray = field(default_factory=lambda: np.zeros(0))  # cv2 distortion before undistortion
+    dist: np.ndarray = field(default_factory=lambda: np.zeros(0))  # cv2 distortion still to undo (none once loaded)
+    frame_dist: np.ndarray = field(default_factory=lambda: np.zeros(0))  # the frame's own lens distortion (cv2 order)
     raw: np.ndarray | None = None  # [H, W, 3] uint8, the frame as decoded (load_scene's keep_raw)
 
     @property
@@ -224,8 +225,8 @@ def load_scene(ws: Workspace, need_masks: bool, load_images: bool = True, skip_e
                                   "loading frames"))
     else:
         views = [cams[n] for n in posed]
-    for v in views:
-        v.dist = np.zeros(0)  # pinhole from here on
+    for v in views:  # pinhole from here on; the frames' own lens is kept to place a render back onto a frame
+        v.frame_dist, v.dist = v.dist, np.zeros(0)
     return Scene(views, np.asarray(pts, np.float64).reshape(-1, 3), np.asarray(cols, np.uint8).reshape(-1, 3), source)
 
 
