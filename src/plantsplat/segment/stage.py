@@ -132,7 +132,7 @@ def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool 
                 prior = np.maximum(plant, cube) > 0.5
                 pending.append((name, cube > 0.5, prior, pool.submit(_frame_mask, ws, name, (plant, cube), cfg,
                                                                      out_dirs, view.raw)))
-                view.raw = view.image = view.mask = None  # its pixels are held until its mask is written
+                view.raw = view.image = view.mask = None  # the task holds the frame until its mask is written
                 while len(pending) > 2 * workers:  # a few frames in flight, not all of them in memory
                     _finish_mask(pending.popleft(), parts, facts)
             while pending:
