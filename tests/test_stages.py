@@ -88,6 +88,39 @@ def test_an_interrupted_stage_resumes_with_the_same_options_only(ws):
     assert calls == [False, True, False]
 
 
+def _chain(ws, name, src, dst):
+    """A stage ``name`` that writes ``dst`` from ``src`` (upper-cased)."""
+    def work(resume):
+        (ws.root / dst).write_text((ws.root / src).read_text().upper())
+        return {}
+
+    return run_stage(ws, name, {}, [ws.root / src], [ws.root / dst], work)
+
+
+def test_a_stage_whose_input_an_earlier_stage_wrote_again_is_not_built_on(ws, tmp_path):
+    """`train --force` then `traits`: the export in between is out of date, and the traits are not measured on it."""
+    _chain(ws, "make", "in.txt", "a.txt")
+    _chain(ws, "use", "a.txt", "b.txt")
+    require_ok(ws, "use")
+    (ws.root / "in.txt").write_text("new input")
+    _chain(ws, "make", "in.txt", "a.txt")  # the earlier stage runs again and writes a.txt anew
+    with pytest.raises(PlantsplatError, match=r"the use stage is out of date: the make stage wrote a.txt again after "
+                                              r"it ran; run `plantsplat use .*` again"):
+        require_ok(ws, "use")
+    _chain(ws, "use", "a.txt", "b.txt")
+    require_ok(ws, "use")
+    # a file changed by hand is no stage's writing: the stage reading it runs again, and is then up to date
+    (ws.root / "a.txt").write_text("BY HAND")
+    _chain(ws, "use", "a.txt", "b.txt")
+    require_ok(ws, "use")
+    # a copied workspace (every file's time new) keeps its records' agreement
+    import shutil
+
+    copy = Workspace(tmp_path / "copy")
+    shutil.copytree(ws.root, copy.root, copy_function=shutil.copy)
+    require_ok(copy, "use")
+
+
 def test_no_record_is_left_to_the_stage_own_checks(ws):
     require_ok(ws, "frames")  # images put there by hand: the next stage checks its inputs itself
     (ws.root / ".plantsplat" / "stages").mkdir(parents=True)

@@ -7,7 +7,8 @@ files it read and wrote. A stage is up to date only when its record says ``ok`` 
 options, inputs and outputs (:func:`up_to_date`):
 
 - a failed or interrupted stage (``failed``, ``running``) is run again, never built on: a stage whose
-  upstream stage is not ``ok`` refuses to start (:func:`require_ok`);
+  upstream stage is not ``ok``, or is out of date (a stage before it wrote one of its inputs again after it
+  ran), refuses to start (:func:`require_ok`);
 - a changed upstream output changes a downstream stage's inputs, so the downstream stage runs again;
 - a damaged output (truncated, edited, deleted) no longer matches its fingerprint: the stage runs again.
 
@@ -124,18 +125,43 @@ def up_to_date(ws: Workspace, stage: str, config: dict, inputs: list[Path], outp
 
 
 def require_ok(ws: Workspace, stage: str, command: str | None = None) -> None:
-    """Refuse to build on a stage that failed or was interrupted: a one-line error naming what to run.
+    """Refuse to build on a stage that failed, was interrupted or is out of date: a one-line error naming what to
+    run.
 
-    A workspace whose files were made without the stage (no record: images, poses or masks put there
-    by hand or by an importer) is left to the next stage's own checks of its inputs.
+    Out of date: a stage before it has written one of its inputs again since it ran (``plantsplat train --force``,
+    then the traits of the previous model's export). The records are compared with each other, not with the files,
+    so a copied workspace, whose files all have new times, is not out of date. A workspace whose files were made
+    without the stage (no record: images, poses or masks put there by hand or by an importer) is left to the next
+    stage's own checks of its inputs.
     """
     rec = read_record(ws, stage)
-    if rec is None or rec.get("status") == "ok":
+    if rec is None:
         return
     cmd = command or f"plantsplat {stage} {ws.root}"
-    reason = f": {rec['reason']}" if rec.get("reason") else ""
-    raise PlantsplatError(f"{ws.root}: the {stage} stage {rec.get('status')}{reason}; fix that and run `{cmd}` again "
-                          "(nothing is built on it)")
+    if rec.get("status") != "ok":
+        reason = f": {rec['reason']}" if rec.get("reason") else ""
+        raise PlantsplatError(f"{ws.root}: the {stage} stage {rec.get('status')}{reason}; fix that and run `{cmd}` "
+                              "again (nothing is built on it)")
+    rewritten = rewritten_inputs(ws, rec)
+    if rewritten:
+        before, path = rewritten[0]
+        raise PlantsplatError(f"{ws.root}: the {stage} stage is out of date: the {before} stage wrote {path} again "
+                              f"after it ran; run `{cmd}` again (nothing is built on an out-of-date stage)")
+
+
+def rewritten_inputs(ws: Workspace, rec: dict) -> list[tuple[str, str]]:
+    """``(stage, path)`` for each input of the stage record ``rec`` that another stage's ``ok`` record says it wrote
+    after ``rec``'s stage finished, with another fingerprint than that stage read. (A file changed by hand is not
+    a stage's writing: the stage that reads it next runs again, as its inputs changed.)"""
+    out = []
+    for other in sorted((ws.root / RECORD_DIR).glob("*.json")):
+        o = read_record(ws, other.stem)
+        if (o is None or o.get("status") != "ok" or other.stem == rec.get("stage")
+                or not o.get("finished", 0) > rec.get("finished", float("inf"))):
+            continue
+        written, read = o.get("outputs") or {}, rec.get("inputs") or {}
+        out += [(other.stem, p) for p in sorted(set(written) & set(read)) if written[p] != read[p]]
+    return out
 
 
 def run_stage(ws: Workspace, stage: str, config: Any, inputs: list[Path], outputs: list[Path],
@@ -177,7 +203,7 @@ def _run_locked(ws: Workspace, stage: str, config: Any, inputs: list[Path], outp
                         "the stage", stage, also)
         raise
     _write(ws, stage, status="ok", config=cfg, inputs=fingerprints(ws, inputs), outputs=fingerprints(ws, outputs),
-           result=_jsonable(result))
+           result=_jsonable(result), finished=time.time())
     return result
 
 
