@@ -1,7 +1,9 @@
 """The stage records (:mod:`plantsplat.stages`): when a stage runs again, when it is skipped, and that a
-failed or interrupted stage is never built on."""
+failed, interrupted or out-of-date stage is never built on."""
 
 from __future__ import annotations
+
+import shutil
 
 import pytest
 
@@ -114,8 +116,6 @@ def test_a_stage_whose_input_an_earlier_stage_wrote_again_is_not_built_on(ws, tm
     _chain(ws, "use", "a.txt", "b.txt")
     require_ok(ws, "use")
     # a copied workspace (every file's time new) keeps its records' agreement
-    import shutil
-
     copy = Workspace(tmp_path / "copy")
     shutil.copytree(ws.root, copy.root, copy_function=shutil.copy)
     require_ok(copy, "use")
