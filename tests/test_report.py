@@ -158,6 +158,31 @@ def test_the_viewer_shows_the_plant_alone_where_the_traits_stage_wrote_it(tmp_pa
     assert len(positions) == 400 and "plant alone" not in text
 
 
+def test_traits_of_a_model_made_anew_since_are_said_to_be_out_of_date(tmp_path):
+    """`plantsplat train --force`, then `plantsplat report`: the traits shown are of the previous model's export."""
+    import os
+
+    from plantsplat.stages import run_stage
+    from plantsplat.workspace import Workspace
+
+    ws = make_synthetic_workspace(tmp_path / "w", n_gaussians=200, n_frames=3)
+    w, model, splat = Workspace(ws), ws / "model.bin", ws / "export" / "splat.ply"
+    model.write_bytes(b"model")
+
+    def train():
+        run_stage(w, "train", {}, [], [model], lambda _: os.utime(model) or {}, force=True)
+
+    train()
+    run_stage(w, "export", {}, [model], [splat], lambda _: {}, force=True)
+    run_stage(w, "traits", {}, [splat], [ws / "traits.json"], lambda _: {}, force=True)
+    assert "OUT OF DATE" not in write_report(ws).read_text()
+    model.write_bytes(b"a model trained anew")
+    train()
+    text = write_report(ws).read_text()
+    assert "OUT OF DATE: these traits were not measured on the model as it is now" in text
+    assert f"plantsplat export {ws}" in text
+
+
 def test_partial_workspace_names_missing_parts(tmp_path):
     ws = make_synthetic_workspace(tmp_path / "p", n_frames=4, stages=("frames", "segment"))
     text = write_report(ws).read_text()

@@ -3,6 +3,7 @@ failed, interrupted or out-of-date stage is never built on."""
 
 from __future__ import annotations
 
+import json
 import shutil
 
 import pytest
@@ -119,6 +120,42 @@ def test_a_stage_whose_input_an_earlier_stage_wrote_again_is_not_built_on(ws, tm
     copy = Workspace(tmp_path / "copy")
     shutil.copytree(ws.root, copy.root, copy_function=shutil.copy)
     require_ok(copy, "use")
+
+
+def test_a_stage_built_on_an_out_of_date_stage_is_not_built_on(ws):
+    """`segment --force` then `traits`: the export is up to date with its model, but the model was trained on the
+    old masks; the command names the first stage to run again."""
+    _chain(ws, "make", "in.txt", "a.txt")
+    _chain(ws, "mid", "a.txt", "b.txt")
+    _chain(ws, "last", "b.txt", "c.txt")
+    require_ok(ws, "last")
+    (ws.root / "in.txt").write_text("new input")
+    _chain(ws, "make", "in.txt", "a.txt")
+    with pytest.raises(PlantsplatError, match=r"the last stage is out of date: it was built on the mid stage, and the "
+                                              r"make stage wrote a.txt again after that ran; run `plantsplat mid .*` "
+                                              r"and the stages after it again"):
+        require_ok(ws, "last")
+    _chain(ws, "mid", "a.txt", "b.txt")
+    with pytest.raises(PlantsplatError, match=r"the last stage is out of date: the mid stage wrote b.txt again"):
+        require_ok(ws, "last")
+    _chain(ws, "last", "b.txt", "c.txt")
+    require_ok(ws, "last")
+
+
+def test_records_made_before_their_finishing_time_was_kept_are_compared_by_their_time(ws):
+    """A workspace made by an earlier plantsplat, whose ok records hold only the time they were written."""
+    _chain(ws, "make", "in.txt", "a.txt")
+    _chain(ws, "use", "a.txt", "b.txt")
+    for stage, when in (("make", "2026-11-01T10:00:00+0000"), ("use", "2026-11-01T10:05:00+0000")):
+        path = ws.root / ".plantsplat" / "stages" / f"{stage}.json"
+        rec = json.loads(path.read_text())
+        rec.pop("finished")
+        path.write_text(json.dumps({**rec, "time": when}))
+    require_ok(ws, "use")
+    (ws.root / "in.txt").write_text("new input")
+    _chain(ws, "make", "in.txt", "a.txt")  # runs now, after 10:05
+    with pytest.raises(PlantsplatError, match="the use stage is out of date"):
+        require_ok(ws, "use")
 
 
 def test_no_record_is_left_to_the_stage_own_checks(ws):

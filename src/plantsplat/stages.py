@@ -23,6 +23,7 @@ Usage:
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import hashlib
 import json
 import os
@@ -129,10 +130,12 @@ def require_ok(ws: Workspace, stage: str, command: str | None = None) -> None:
     run.
 
     Out of date: a stage before it has written one of its inputs again since it ran (``plantsplat train --force``,
-    then the traits of the previous model's export). The records are compared with each other, not with the files,
-    so a copied workspace, whose files all have new times, is not out of date. A workspace whose files were made
-    without the stage (no record: images, poses or masks put there by hand or by an importer) is left to the next
-    stage's own checks of its inputs.
+    then the traits of the previous model's export), or one of the stages it was built on is out of date
+    (``plantsplat segment --force``, then the traits of an export of the model trained on the old masks). The
+    records are compared with each other, not with the files, so a copied workspace, whose files all have new
+    times, is not out of date; their times are the clock's, so a workspace moved to a machine whose clock is far
+    behind can miss a stage run there. A workspace whose files were made without the stage (no record: images,
+    poses or masks put there by hand or by an importer) is left to the next stage's own checks of its inputs.
     """
     rec = read_record(ws, stage)
     if rec is None:
@@ -142,26 +145,76 @@ def require_ok(ws: Workspace, stage: str, command: str | None = None) -> None:
         reason = f": {rec['reason']}" if rec.get("reason") else ""
         raise PlantsplatError(f"{ws.root}: the {stage} stage {rec.get('status')}{reason}; fix that and run `{cmd}` "
                               "again (nothing is built on it)")
-    rewritten = rewritten_inputs(ws, rec)
-    if rewritten:
-        before, path = rewritten[0]
-        raise PlantsplatError(f"{ws.root}: the {stage} stage is out of date: the {before} stage wrote {path} again "
+    stale = out_of_date(ws, stage)
+    if stale is None:
+        return
+    first, writer, path = stale
+    if first == stage:
+        raise PlantsplatError(f"{ws.root}: the {stage} stage is out of date: the {writer} stage wrote {path} again "
                               f"after it ran; run `{cmd}` again (nothing is built on an out-of-date stage)")
+    raise PlantsplatError(f"{ws.root}: the {stage} stage is out of date: it was built on the {first} stage, and the "
+                          f"{writer} stage wrote {path} again after that ran; run `plantsplat {first} {ws.root}` and "
+                          "the stages after it again (nothing is built on an out-of-date stage)")
 
 
-def rewritten_inputs(ws: Workspace, rec: dict) -> list[tuple[str, str]]:
-    """``(stage, path)`` for each input of the stage record ``rec`` that another stage's ``ok`` record says it wrote
-    after ``rec``'s stage finished, with another fingerprint than that stage read. (A file changed by hand is not
-    a stage's writing: the stage that reads it next runs again, as its inputs changed.)"""
-    out = []
-    for other in sorted((ws.root / RECORD_DIR).glob("*.json")):
-        o = read_record(ws, other.stem)
-        if (o is None or o.get("status") != "ok" or other.stem == rec.get("stage")
-                or not o.get("finished", 0) > rec.get("finished", float("inf"))):
+def out_of_date(ws: Workspace, stage: str) -> tuple[str, str, str] | None:
+    """Why the ``ok`` stage ``stage`` is out of date: ``(stale stage, writer, path)``, where ``stale stage`` is the
+    stage itself or one it was built on (see :func:`built_on`), the first of them where several are (one built on
+    no other stale stage), and ``writer`` the stage that wrote ``path``, one of the stale stage's inputs, after it
+    finished. None when it is up to date with every stage it was built on."""
+    records = {}
+    for path in sorted((ws.root / RECORD_DIR).glob("*.json")):
+        rec = read_record(ws, path.stem)
+        if rec is not None and rec.get("status") == "ok":
+            records[path.stem] = rec
+    if stage not in records:
+        return None
+    stale = {}
+    for name in sorted(built_on(records, stage) | {stage}):
+        rewritten = rewritten_inputs(records, name)
+        if rewritten:
+            stale[name] = rewritten[0]
+    first = [name for name in stale if not built_on(records, name) & set(stale)] or list(stale)
+    return (first[0], *stale[first[0]]) if stale else None
+
+
+def built_on(records: dict[str, dict], stage: str) -> set[str]:
+    """The stages ``stage`` was built on (``records``: stage name -> ``ok`` record): those whose outputs it read,
+    and those whose outputs they read, and so on back."""
+    found, todo = set(), [stage]
+    while todo:
+        read = set(records[todo.pop()].get("inputs") or {})
+        for other, rec in records.items():
+            if other != stage and other not in found and read & set(rec.get("outputs") or {}):
+                found.add(other)
+                todo.append(other)
+    return found
+
+
+def rewritten_inputs(records: dict[str, dict], stage: str) -> list[tuple[str, str]]:
+    """``(writer, path)`` for each input of ``stage`` that another stage's ``ok`` record (``records``: stage name ->
+    ``ok`` record) says it wrote after ``stage`` finished, with another fingerprint than ``stage`` read. (A file
+    changed by hand is not a stage's writing: the stage that reads it next runs again, as its inputs changed.)"""
+    rec, out = records[stage], []
+    since = finished_at(rec)
+    for other, o in records.items():
+        done = finished_at(o)
+        if other == stage or since is None or done is None or not done > since:
             continue
         written, read = o.get("outputs") or {}, rec.get("inputs") or {}
-        out += [(other.stem, p) for p in sorted(set(written) & set(read)) if written[p] != read[p]]
+        out += [(other, p) for p in sorted(set(written) & set(read)) if written[p] != read[p]]
     return out
+
+
+def finished_at(rec: dict) -> float | None:
+    """When an ``ok`` record's stage finished (seconds since the epoch): its ``finished`` field, or for a record
+    written before that field existed its ``time`` (to the second); None when neither can be read."""
+    if isinstance(rec.get("finished"), (int, float)):
+        return float(rec["finished"])
+    try:
+        return datetime.datetime.strptime(str(rec.get("time")), "%Y-%m-%dT%H:%M:%S%z").timestamp()
+    except ValueError:
+        return None
 
 
 def run_stage(ws: Workspace, stage: str, config: Any, inputs: list[Path], outputs: list[Path],

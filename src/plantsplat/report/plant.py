@@ -37,7 +37,7 @@ from plantsplat.report.figures import (
     render_pairs,
 )
 from plantsplat.report.splat import encode_splat, read_points_ply, read_splat_ply
-from plantsplat.stages import fingerprints, read_record
+from plantsplat.stages import fingerprints, out_of_date, read_record
 from plantsplat.traitdefs import TRAIT_KEYS, TRAIT_LABELS, TRAIT_UNITS
 from plantsplat.workspace import Workspace
 
@@ -369,7 +369,7 @@ def build_report_html(ws: Workspace, opts: ReportConfig | None = None) -> tuple[
     header = (f"<header><h1>plantsplat report: {H.esc(ws.root.resolve().name)}</h1>"
               f'<div class="sub">{H.esc(str(ws.root.resolve()))} · generated {H.esc(when)} · plantsplat {H.esc(version)}'
               f" · {len(parts.missing)} part(s) missing</div></header>")
-    body = header + nav + "<main>" + _failed_banner(ws) + summary + "".join(sections) + "</main>"
+    body = header + nav + "<main>" + _failed_banner(ws) + _out_of_date_banner(ws) + summary + "".join(sections) + "</main>"
     return H.page(f"plantsplat report: {ws.root.resolve().name}", body), parts
 
 
@@ -386,6 +386,21 @@ def _failed_banner(ws: Workspace) -> str:
     items = "".join(f"<li>{H.esc(r)}</li>" for r in t.get("quality_reasons", [])[:6])
     return (f'<div class="missing failed"><b>RESULT FAILED: these traits must not be used.</b> '
             f"The checks that failed:<ul>{items}</ul></div>")
+
+
+def _out_of_date_banner(ws: Workspace) -> str:
+    """Traits measured on what a stage has made anew since (``plantsplat train --force`` and no export or traits
+    after it): said first, with the command that brings them up to date."""
+    if not ws.traits_json.is_file():
+        return ""
+    stale = out_of_date(ws, "traits")
+    if stale is None:
+        return ""
+    first, writer, path = stale
+    return (f'<div class="missing failed"><b>OUT OF DATE: these traits were not measured on the model as it is '
+            f"now.</b> The {H.esc(writer)} stage wrote {H.esc(path)} again after the {H.esc(first)} stage ran; run "
+            f"<code>plantsplat {H.esc(first)} {H.esc(str(ws.root))}</code> and the stages after it, then the report "
+            "again.</div>")
 
 
 def write_report(workspace: Workspace | str | os.PathLike, out: str | os.PathLike | None = None,
