@@ -524,6 +524,29 @@ def test_undistortion_applied(tmp_path):
     assert np.array_equal(kept.raw, img) and np.array_equal(kept.image, v.image)
 
 
+def test_each_camera_gets_its_own_lens_map():
+    """A model imported with a camera per frame: each frame's prior is moved through its own lens, and frames that
+    share a camera share one map."""
+    from plantsplat.segment.frame import cached_distortion_map, distortion_map
+    from plantsplat.train.data import View
+
+    K = np.array([[60.0, 0, 40], [0, 60, 30], [0, 0, 1]])
+
+    def view(k1, width=80):
+        return View(name="f", K=K, viewmat=np.eye(4), width=width, height=60, frame_dist=np.array([k1, 0, 0, 0, 0]))
+
+    cache: dict = {}
+    a, b, a2, pin = view(-0.3), view(0.2), view(-0.3), view(0.0)
+    ma, mb = cached_distortion_map(a, cache), cached_distortion_map(b, cache)
+    assert cached_distortion_map(a2, cache) is ma and cached_distortion_map(pin, cache) is None
+    for got, v in ((ma, a), (mb, b)):
+        want = distortion_map(v)
+        assert all(np.array_equal(g, w) for g, w in zip(got, want))
+    assert not np.allclose(ma[0], mb[0])
+    wide = cached_distortion_map(view(-0.3, width=100), cache)
+    assert wide[0].shape == (60, 100) and len(cache) == 4
+
+
 def test_omp_waiting_set_before_torch_loads():
     """Importing plantsplat (as the CLI and plantsplat.train do) sets how OpenMP threads wait before torch/numba
     load OpenMP: a short spin (GOMP_SPINCOUNT) on a machine that is not busy, OMP_WAIT_POLICY=PASSIVE on one whose

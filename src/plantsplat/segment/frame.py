@@ -138,6 +138,16 @@ def distortion_map(view) -> tuple[np.ndarray, np.ndarray] | None:
     return pts[..., 0], pts[..., 1]
 
 
+def cached_distortion_map(view, cache: dict) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`distortion_map` of ``view``, made once per camera (intrinsics, lens and size) and kept in ``cache``: an
+    imported model may give each frame a camera of its own."""
+    key = (np.asarray(view.K, np.float64).tobytes(), np.asarray(view.frame_dist, np.float64).tobytes(),
+           view.width, view.height)
+    if key not in cache:
+        cache[key] = distortion_map(view)
+    return cache[key]
+
+
 def to_frame(prior: np.ndarray, maps: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
     """A prior rendered through the pinhole camera, moved onto the distorted frame (see :func:`distortion_map`)."""
     if maps is None:

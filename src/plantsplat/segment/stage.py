@@ -51,7 +51,7 @@ from plantsplat.resources import map_on_cores, usable_cores
 from plantsplat.segment.config import SegmentConfig
 from plantsplat.segment.decide import DecideConfig
 from plantsplat.segment.decision_figure import decision_figure
-from plantsplat.segment.frame import distortion_map, object_mask, object_prior, to_frame, unresolved_px
+from plantsplat.segment.frame import cached_distortion_map, object_mask, object_prior, to_frame, unresolved_px
 from plantsplat.segment.imports import import_masks
 from plantsplat.segment.object3d import object_model
 from plantsplat.segment.preview import contact_sheet
@@ -114,7 +114,7 @@ def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool 
     if cfg.preview:
         decision_figure(obj, ws.segment_decision_png)
     by_name = {v.name: v for v in views}
-    maps = distortion_map(views[0]) if views else None
+    lenses: dict = {}  # one distortion map per camera (an imported model may hold one camera per frame)
     parts: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     facts: dict[str, dict] = {}
     pending: deque = deque()  # (name, the cube's share, the prior's mask, the refined mask's future), in frame order
@@ -128,6 +128,7 @@ def _masks_3d(ws: Workspace, names: list[str], cfg: SegmentConfig, resume: bool 
                     if out_dirs is not None:
                         pending.append((name, None, None, pool.submit(_frame_mask, ws, name, None, cfg, out_dirs)))
                     continue
+                maps = cached_distortion_map(view, lenses)
                 plant, cube = (to_frame(p, maps) for p in object_prior(obj, view))  # rendered here: numba's threads
                 prior = np.maximum(plant, cube) > 0.5
                 pending.append((name, cube > 0.5, prior, pool.submit(_frame_mask, ws, name, (plant, cube), cfg,
