@@ -559,3 +559,23 @@ def test_a_forked_computation_gives_its_value_and_leaves_the_stage_as_it_was(tmp
     running.stop()
     assert not _alive(child)
     running.stop()  # twice: nothing more to do
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the stage forks on Linux only")
+def test_a_fork_the_system_refuses_is_computed_in_the_stage(monkeypatch):
+    """os.fork failing (a process limit: EAGAIN; no memory to spare: ENOMEM) is no error: the value is computed in the
+    stage, and the pipe made for the child is closed."""
+    import errno
+    import os
+
+    from plantsplat.workers import start_forked
+
+    def refuse():
+        raise BlockingIOError(errno.EAGAIN, "Resource temporarily unavailable")
+
+    monkeypatch.setattr(os, "fork", refuse)
+    open_before = len(os.listdir("/proc/self/fd"))
+    forked = start_forked(lambda: os.getpid())
+    assert len(os.listdir("/proc/self/fd")) == open_before
+    assert forked.result() == os.getpid()
+    forked.stop()

@@ -488,6 +488,26 @@ def test_every_cached_kernel_module_is_in_the_stamp():
     assert cached and cached <= set(kernel_cache.KERNEL_MODULES)
 
 
+def test_the_kernel_stamp_changes_where_numba_drops_its_cached_kernels(tmp_path, monkeypatch):
+    """numba's cache of a file's kernels is dropped when the file's time or size changes (a reinstall, a checkout
+    there and back) and is kept per processor: the stamp follows, so the warm-up runs again there."""
+    import os
+    import shutil
+
+    from plantsplat import kernel_cache
+
+    raster = tmp_path / "raster"
+    shutil.copytree(Path(kernel_cache.__file__).with_name("raster"), raster)
+    before = kernel_cache.kernel_sources_digest(raster)
+    assert kernel_cache.kernel_sources_digest(raster) == before
+    st = (raster / "cpu.py").stat()
+    os.utime(raster / "cpu.py", ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))  # the same source, touched
+    touched = kernel_cache.kernel_sources_digest(raster)
+    assert touched != before
+    monkeypatch.setattr(kernel_cache, "processor_model", lambda: "another processor")
+    assert kernel_cache.kernel_sources_digest(raster) != touched
+
+
 def test_the_kernel_stamp_belongs_to_one_numba_cache_and_one_version_of_the_kernels(tmp_path, monkeypatch):
     from plantsplat import kernel_cache
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import platform
 import sys
 from importlib import metadata
 from pathlib import Path
@@ -26,14 +27,35 @@ KERNEL_MODULES = ("cpu.py", "cpu_order.py", "cpu_projection.py", "sh_cpu.py", "s
 """The files of ``plantsplat/raster/`` whose kernels numba caches (``numba_config``: the flags they share)."""
 
 
+def kernel_sources_digest(raster: Path) -> str:
+    """A digest of what numba's cache of the kernels in the folder ``raster`` is valid for: numba's and Python's
+    versions, this machine's processor, and each kernel module's source with its size and modification time
+    (numba drops its cached kernels of a file whose time or size changed: a reinstall, a checkout there and back)."""
+    h = hashlib.sha256(f"{metadata.version('numba')} {sys.version_info[:3]} {processor_model()}".encode())
+    for name in KERNEL_MODULES:
+        path = raster / name
+        st = path.stat()
+        h.update(f"{name} {st.st_size} {st.st_mtime_ns}\n".encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def processor_model() -> str:
+    """The processor's model (numba's cached kernels are compiled for it), without loading numba."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return f"{platform.machine()} {platform.processor()}"
+
+
 def _stamp() -> Path:
     """Where this version's stamp is (it may not exist)."""
     raster = Path(plantsplat.__file__).resolve().parent / "raster"
-    h = hashlib.sha256(f"{metadata.version('numba')} {sys.version_info[:3]}".encode())
-    for name in KERNEL_MODULES:
-        h.update((raster / name).read_bytes())
     folder = Path(os.environ["NUMBA_CACHE_DIR"]) if os.environ.get("NUMBA_CACHE_DIR") else raster / "__pycache__"
-    return folder / f"plantsplat-kernels-{h.hexdigest()[:16]}.stamp"
+    return folder / f"plantsplat-kernels-{kernel_sources_digest(raster)}.stamp"
 
 
 def kernels_cached() -> bool:

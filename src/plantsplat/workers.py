@@ -162,11 +162,21 @@ def start_forked(fn: Callable[[], T]) -> Forked[T]:
     ignores Ctrl-C (the stage stops it) and dies with this process. Call :meth:`Forked.stop` in a ``finally``."""
     if not sys.platform.startswith("linux"):  # fork is unsafe on macOS and absent on Windows
         return Forked(fn, None, None)
-    r, w = os.pipe()
     parent = os.getpid()
-    with warnings.catch_warnings():  # Python 3.12+ warns of any fork beside native threads: see result()'s timeout
-        warnings.simplefilter("ignore", DeprecationWarning)
-        pid = os.fork()
+    try:
+        r, w = os.pipe()
+    except OSError as exc:  # no descriptors left: compute it here
+        log.debug("no pipe for a forked computation (%s); computing it here", exc)
+        return Forked(fn, None, None)
+    try:
+        with warnings.catch_warnings():  # Python 3.12+ warns of any fork beside native threads: see result()'s timeout
+            warnings.simplefilter("ignore", DeprecationWarning)
+            pid = os.fork()
+    except OSError as exc:  # a process limit (EAGAIN) or no memory to spare (ENOMEM): compute it here
+        os.close(r)
+        os.close(w)
+        log.debug("could not fork (%s); computing it here", exc)
+        return Forked(fn, None, None)
     if pid == 0:  # pragma: no cover - the child (coverage does not follow it)
         code = 1
         try:
