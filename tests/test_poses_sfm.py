@@ -394,6 +394,28 @@ def test_a_failed_global_mapping_process_says_where_its_log_is(tmp_path):
         sfm.finish_global_mapping(proc, tmp_path / "global")
 
 
+def test_a_matching_process_keeps_colmap_errors_in_its_log(tmp_path):
+    """A matching process's stderr is its log.txt, which the stage quotes when the process fails: COLMAP's errors
+    (without --verbose, errors only) are written there, not silenced."""
+    import dataclasses
+    import json
+
+    import pycolmap
+
+    from plantsplat.poses.sfm import write_pairs
+    from plantsplat.workers import WORKER_LOG, spawn_worker
+
+    db = tmp_path / "database.db"
+    pycolmap.Database.open(str(db)).close()
+    write_pairs(tmp_path / "pairs.txt", [("frame_a.png", "frame_b.png")])
+    opts = PosesConfig().sfm_options()
+    assert not opts.verbose
+    proc = spawn_worker("plantsplat.poses.match_worker",
+                        [str(db), str(tmp_path / "pairs.txt"), json.dumps(dataclasses.asdict(opts))], tmp_path)
+    assert proc.wait(timeout=120) == 0
+    assert "frame_a.png does not exist" in (tmp_path / WORKER_LOG).read_text()
+
+
 def test_weakly_held_frames_are_matched_again_guided(synth_run, tmp_path):
     """The verified pairs of the frames the model holds most weakly are matched again with guided matching, in a copy of the
     database (poses.guided): the same matches, the same pairs verified, at least as many inliers on each and more in

@@ -16,7 +16,8 @@ from plantsplat.workers import worker_start
 
 def main(argv: list[str]) -> int:
     worker_start()
-    match_pair_list(Path(argv[0]), Path(argv[1]), SfmConfig(**json.loads(argv[2])))
+    # stderr is this worker's log.txt: COLMAP's errors (a failed check before an abort) are what the stage quotes
+    match_pair_list(Path(argv[0]), Path(argv[1]), SfmConfig(**json.loads(argv[2])), keep_errors=True)
     return 0
 
 

@@ -81,12 +81,13 @@ class SfmConfig:
 
 
 @contextlib.contextmanager
-def colmap_logging(verbose: bool):
+def colmap_logging(verbose: bool, keep_errors: bool = False):
     """Silence COLMAP's output on stderr unless ``verbose`` (restored afterwards).
 
     glog's level is raised to errors, and file descriptor 2 is sent to /dev/null for the duration
     (:func:`plantsplat.io.native_stderr_silenced`) because some pycolmap calls (bundle adjustment) print
     their reports regardless of the level. Do not log from inside this block: it would be swallowed too.
+    ``keep_errors``: COLMAP's errors still reach stderr (a worker process, whose stderr is its log file).
     """
     import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
@@ -98,7 +99,7 @@ def colmap_logging(verbose: bool):
     pycolmap.logging.minloglevel = 2  # errors only
     pycolmap.logging.verbose_level = 0
     try:
-        with native_stderr_silenced():
+        with contextlib.nullcontext() if keep_errors else native_stderr_silenced():
             yield
     finally:
         pycolmap.logging.minloglevel = old
@@ -251,15 +252,15 @@ def write_pairs(path: Path, pairs: list[tuple[str, str]]) -> None:
     path.write_text("".join(f"{a} {b}\n" for a, b in pairs))
 
 
-def match_pair_list(db: Path, pair_file: Path, opts: SfmConfig) -> None:
+def match_pair_list(db: Path, pair_file: Path, opts: SfmConfig, keep_errors: bool = False) -> None:
     """Match and verify the pairs listed in ``pair_file`` (:func:`write_pairs`) into ``db`` in this process, on
-    :data:`MATCH_THREADS` threads."""
+    :data:`MATCH_THREADS` threads. ``keep_errors``: COLMAP's errors reach stderr (see :func:`colmap_logging`)."""
     import pycolmap  # deferred: pycolmap is heavy, and the CLI starts without it
 
     mopts, verif = _matching_options(opts)
     pairing = pycolmap.ImportedPairingOptions()
     pairing.match_list_path = str(pair_file)
-    with colmap_logging(opts.verbose):
+    with colmap_logging(opts.verbose, keep_errors):
         pycolmap.match_image_pairs(db, matching_options=mopts, pairing_options=pairing, verification_options=verif,
                                    device=pycolmap.Device.cpu)
 
