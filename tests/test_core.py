@@ -101,6 +101,27 @@ def test_traitdefs_against_independent_formulas():
     assert traitdefs.canopy_area(pts) == pytest.approx(120, rel=1e-9)
     with pytest.raises(ValueError):
         traitdefs.pca_widths(np.zeros((2, 3)))
+    flat = pts.copy()
+    flat[:, 2] = 4.0  # a cloud in one plane (exported flat): no volume, its area as before
+    assert traitdefs.canopy_volume(flat) == 0.0 and traitdefs.canopy_area(flat) == pytest.approx(120, rel=1e-9)
+    line = np.zeros((50, 3))
+    line[:, 2] = np.linspace(0, 5, 50)  # a stalk seen straight: no area
+    assert traitdefs.canopy_area(line) == 0.0
+
+
+def test_a_splat_ply_with_no_gaussians_reads_as_empty(tmp_path):
+    """An export with no Gaussian left (all under the opacity cut) is read as an empty cloud, which the traits stage
+    then marks failed (too few points), not a reshape error."""
+    from plantsplat.ply import read_splat, read_splat_extent_cloud
+
+    props = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", *[f"f_rest_{i}" for i in range(9)], "opacity",
+             "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    path = tmp_path / "splat.ply"
+    path.write_bytes(("ply\nformat binary_little_endian 1.0\nelement vertex 0\n"
+                      + "".join(f"property float {p}\n" for p in props) + "end_header\n").encode())
+    g = read_splat(path)
+    assert g["means"].shape == (0, 3) and g["shN"].shape == (0, 3, 3)
+    assert read_splat_extent_cloud(path, 0.1, 2.0)["xyz"].shape == (0, 3)
 
 
 def test_ground_truth_csv_problems(tmp_path):

@@ -713,6 +713,12 @@ def test_the_height_is_judged_by_bounds_found_apart_from_it(tmp_path):
     lost = traits_workspace(_measured_workspace(tmp_path / "lost", pts, cols, [0.9] * 20, pot=above), figure=False)
     assert lost["quality"] == "failed" and "plant_base_into_pot_cm" in {c["name"] for c in lost["checks"]
                                                                          if not c["passed"]}
+    # what reaches deeper below the rim than the soil is looked for is not the plant's base (a stray piece down to
+    # the pot's floor made a height 50 % too tall look sure: its bounds as narrow as the ground allows)
+    deep = {**rim, "rim_z_cm": low + 8.0, "soil_z_cm": low + 8.0}
+    sunk = traits_workspace(_measured_workspace(tmp_path / "sunk", pts, cols, [0.9] * 20, pot=deep), figure=False)
+    assert sunk["quality"] == "failed" and "plant_base_depth_in_pot_cm" in {c["name"] for c in sunk["checks"]
+                                                                            if not c["passed"]}
     ground = traits_workspace(_measured_workspace(tmp_path / "ground", pts, cols, [0.9] * 20), figure=False)
     assert ground["quality"] == "ok" and "soil_interval_cm" not in ground
     assert ground["height_bounds_cm"] == pytest.approx([top - low] * 2, abs=1e-3)

@@ -138,7 +138,7 @@ def read_splat(path: str | os.PathLike, hint: str = "export it with `plantsplat 
         "quats": np.stack([col(f"rot_{i}") for i in range(4)], -1),
         "opacities": col("opacity"),
         "sh0": np.stack([col(f"f_dc_{i}") for i in range(3)], -1)[:, None, :],
-        "shN": f_rest.reshape(n, 3, -1).transpose(0, 2, 1),
+        "shN": f_rest.reshape(n, 3, len(rest) // 3).transpose(0, 2, 1),  # n = 0 too
     }
 
 

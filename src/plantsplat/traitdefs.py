@@ -87,17 +87,25 @@ def pca_widths(points: np.ndarray, trim: float = 0.0) -> tuple[float, float]:
 
 
 def canopy_volume(points: np.ndarray) -> float:
-    """Canopy volume: volume of the 3D convex hull of the plant points (cm^3)."""
-    from scipy.spatial import ConvexHull  # deferred: SciPy is slow to load, and the CLI imports this module
-
-    return float(ConvexHull(_check(points)).volume)
+    """Canopy volume: volume of the 3D convex hull of the plant points (cm^3); 0 for points in one plane."""
+    return _hull_measure(_check(points))
 
 
 def canopy_area(points: np.ndarray) -> float:
-    """Projected canopy area: area of the 2D convex hull of the ground-projected points (cm^2)."""
-    from scipy.spatial import ConvexHull  # deferred: SciPy is slow to load, and the CLI imports this module
+    """Projected canopy area: area of the 2D convex hull of the ground-projected points (cm^2); 0 for points on one
+    line."""
+    return _hull_measure(_check(points)[:, :2])  # in 2D, the hull's volume is its area
 
-    return float(ConvexHull(_check(points)[:, :2]).volume)  # in 2D, .volume is the area
+
+def _hull_measure(points: np.ndarray) -> float:
+    """The volume (3D) or area (2D) of the points' convex hull; 0 where they do not span the space (Qhull refuses a
+    flat hull: a cloud exported flat, or a single leaf seen edge-on)."""
+    from scipy.spatial import ConvexHull, QhullError  # deferred: SciPy is slow to load, and the CLI imports this module
+
+    try:
+        return float(ConvexHull(points).volume)
+    except QhullError:
+        return 0.0
 
 
 def geometric_traits(points: np.ndarray, trim: float = 0.0, soil_z: float | None = None) -> dict[str, float]:

@@ -38,6 +38,7 @@ from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_json
 from plantsplat.log import get_logger
 from plantsplat.ply import read_point_cloud
+from plantsplat.segment.object3d import SOIL_DEPTH_CM
 from plantsplat.segment.object3d import find_pot, orbit_axis, pot_inside_radius, pot_soil_layer
 from plantsplat.train.data import load_scene
 
@@ -93,6 +94,10 @@ class QualityThresholds:
     """fail: where the soil was not seen, the plant reaches less than this far below the pot's rim (one slab of the
     pot finder): its base, which stands on the soil, was not found, so the height from its lowest point rests on
     nothing but that point."""
+    base_depth_in_pot_cm: float = SOIL_DEPTH_CM
+    """fail: where the soil was not seen, the plant reaches farther than this below the pot's rim: deeper than the
+    segment stage looks for the soil (:data:`plantsplat.segment.object3d.SOIL_DEPTH_CM`), so what was taken for
+    the plant's base is something else (a stray piece, the pot's wall), and the height from it is too tall."""
 
 
 def workspace_soil(ws, calibrated: bool) -> tuple[float | None, str, tuple | None, float]:
@@ -223,6 +228,9 @@ def result_checks(traits: dict, plant_points: int, plant_top_cm: float | None, c
         out.append(Check("plant_base_into_pot_cm", soil.into_pot, t.base_into_pot_cm, ">=",
                          "soil not seen: how far the plant's lowest point reaches below the pot's rim (its base "
                          "stands on the soil; a plant that does not reach into the pot lost its base)"))
+        out.append(Check("plant_base_depth_in_pot_cm", soil.into_pot, t.base_depth_in_pot_cm, "<=",
+                         "soil not seen: how far the plant's lowest point reaches below the pot's rim (deeper than "
+                         "the soil is looked for, it is not the plant's base)"))
     if soil is not None and soil.base_spread is not None:
         out.append(Check("plant_base_spread", soil.base_spread, t.base_spread, "<=",
                          "soil not seen: how the plant's lowest centimetre in the pot spreads over it (a crown "
