@@ -38,8 +38,7 @@ from plantsplat.errors import PlantsplatError
 from plantsplat.io import read_json
 from plantsplat.log import get_logger
 from plantsplat.ply import read_point_cloud
-from plantsplat.segment.object3d import SOIL_DEPTH_CM
-from plantsplat.segment.object3d import find_pot, orbit_axis, pot_inside_radius, pot_soil_layer
+from plantsplat.segment.object3d import SOIL_DEPTH_CM, find_pot, orbit_axis, pot_inside_radius, pot_soil_layer
 from plantsplat.train.data import load_scene
 
 log = get_logger(__name__)
