@@ -579,3 +579,22 @@ def test_a_fork_the_system_refuses_is_computed_in_the_stage(monkeypatch):
     assert len(os.listdir("/proc/self/fd")) == open_before
     assert forked.result() == os.getpid()
     forked.stop()
+
+
+def test_a_model_the_cube_gave_no_scale_says_why():
+    """No marker found, markers in fewer than two registered frames, or markers that fit no cube: each its own line
+    (before, every case said that no markers were found)."""
+    from pathlib import Path
+
+    from plantsplat.cube import CubeSpec
+    from plantsplat.markers import Markers
+    from plantsplat.poses.stage import unscaled_message
+
+    corners = {0: np.zeros((4, 2))}
+    images, cube = Path("ws/images"), CubeSpec()
+    assert unscaled_message(Markers(), {"a.png", "b.png"}, images, cube).startswith("NO CUBE MARKERS FOUND in ws/images")
+    one = unscaled_message(Markers({"a.png": corners, "b.png": corners}), {"a.png", "c.png"}, images, cube)
+    assert "found in 2 frame(s), 1 of them registered; it needs them in two registered frames or more" in one
+    unfit = unscaled_message(Markers({"a.png": corners, "b.png": corners}), {"a.png", "b.png"}, images, cube)
+    assert "found in 2 registered frames, do not fit one 10 cm cube" in unfit
+    assert all("NOT metric" in m for m in (one, unfit))

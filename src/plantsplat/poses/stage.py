@@ -133,10 +133,9 @@ def run(ws: Workspace | str | Path, cfg: PosesConfig | None = None) -> dict:
     if sfm:
         localize_left_out(rec, ws, names, times, cfg, report)
     if cal is None and cfg.calibrate:
-        log.warning("NO CUBE MARKERS FOUND in %s (dictionary %s): the model is NOT metric and z is not up; traits will "
-                    "be in model units unless the traits stage finds the cube in the point cloud", ws.images_dir,
-                    cube.dictionary)
-        report["events"].append("no markers: unscaled model")
+        log.warning("%s", unscaled_message(markers, {im.name for im in rec.images.values()}, ws.images_dir, cube))
+        report["events"].append("no markers: unscaled model" if not any(markers.frames.values()) else
+                                "markers too few or inconsistent: unscaled model")
     checks = model_checks(rec, cal, markers, cube, names, times, cfg)
     report["checks"] = [c.as_dict() for c in checks]
     _describe(report, rec, cal, cfg, names)
@@ -209,6 +208,22 @@ def start_markers(ws: Workspace, names: list[str], cube: CubeSpec) -> subprocess
     (here / "names.txt").write_text("".join(f"{n}\n" for n in names))
     return spawn_worker("plantsplat.poses.marker_worker", [str(ws.images_dir.resolve()), str(here / "names.txt"),
                                                             json.dumps(cube.record()), str(here / MARKERS_FILE)], here)
+
+
+def unscaled_message(markers: Markers, registered: set[str], images_dir: Path, cube: CubeSpec) -> str:
+    """What the stage says when the cube gave the model no scale: no marker found at all, or markers found in too
+    few registered frames (the cube needs two or more), or found but not fitting one cube."""
+    seen = sorted(n for n, d in markers.frames.items() if d)
+    after = ("the model is NOT metric and z is not up; traits will be in model units unless the traits stage finds "
+             "the cube in the point cloud")
+    if not seen:
+        return f"NO CUBE MARKERS FOUND in {images_dir} (dictionary {cube.dictionary}): {after}"
+    held = [n for n in seen if n in registered]
+    if len(held) < 2:
+        return (f"THE CUBE GAVE NO SCALE: its markers were found in {len(seen)} frame(s), {len(held)} of them "
+                f"registered; it needs them in two registered frames or more (film it from several sides): {after}")
+    return (f"THE CUBE GAVE NO SCALE: its markers, found in {len(held)} registered frames, do not fit one "
+            f"{cube.size:g} cm cube (check --poses.cube-size and --poses.marker-size): {after}")
 
 
 def finish_markers(ws: Workspace, proc: subprocess.Popen, cube: CubeSpec, report: dict) -> Markers:
