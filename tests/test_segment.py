@@ -687,7 +687,8 @@ def test_up_to_date_and_renders_cut_like_frames(segmented):
     name = next(r["name"] for r in info["frames"] if r["name"] not in {e["name"] for e in info["excluded"]})
     # a render is drawn through the undistorted pinhole camera, as the trainer sees the frame
     view = next(v for v in load_scene(ws, need_masks=False, load_images=False).views if v.name == name)
-    m1, m2 = cv2.initUndistortRectifyMap(view.K, view.dist, None, view.K, (view.width, view.height), cv2.CV_32FC1)
+    m1, m2 = cv2.initUndistortRectifyMap(view.K, view.frame_dist, None, view.K, (view.width, view.height),
+                                         cv2.CV_32FC1)
     rgb = cv2.remap(read_image(ws.images_dir / name), m1, m2, cv2.INTER_LINEAR)
     frame_mask = cv2.remap(read_image(ws.masks_dir / name, "gray"), m1, m2, cv2.INTER_NEAREST) > 127
     got = segment_images(ws, {name: rgb})[name]
