@@ -197,9 +197,11 @@ def rewritten_inputs(records: dict[str, dict], stage: str) -> list[tuple[str, st
     changed by hand is not a stage's writing: the stage that reads it next runs again, as its inputs changed.)"""
     rec, out = records[stage], []
     since = finished_at(rec)
+    if since is None:
+        return out
     for other, o in records.items():
         done = finished_at(o)
-        if other == stage or since is None or done is None or not done > since:
+        if other == stage or done is None or not done > since:
             continue
         written, read = o.get("outputs") or {}, rec.get("inputs") or {}
         out += [(other, p) for p in sorted(set(written) & set(read)) if written[p] != read[p]]
